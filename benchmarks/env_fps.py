@@ -1,0 +1,113 @@
+"""Env throughput: the batched ``CrispTrack-v0`` against raw ``mujoco.batch`` physics.
+
+Measured in one run on the same model:
+
+* raw physics: ``Batch.step(nstep=substeps)`` with constant controls, in env-steps/s
+  (one env-step = ``substeps`` physics steps), the ceiling the env can approach;
+* the batched env (observation, reward, resets included), and its ratio to the above;
+* a single env, and gymnasium's ``SyncVectorEnv`` over single envs, for comparison.
+
+    python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip flat_walk
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gymnasium as gym
+import mujoco
+import mujoco.batch
+import numpy as np
+import tyro
+
+import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
+from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+
+
+@dataclass(frozen=True)
+class Args:
+    clip: str = "flat_walk"
+    num_envs: int = 64
+    threads: int = 2
+    seconds: float = 5.0
+    scene_aware: bool = False
+    seed: int = 0
+
+
+def _rate(step, seconds: float) -> float:
+    """Calls per second of ``step`` over about ``seconds`` (after a short warm-up)."""
+    for _ in range(3):
+        step()
+    count, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        step()
+        count += 1
+    return count / (time.perf_counter() - start)
+
+
+def main(args: Args) -> dict[str, float]:
+    rng = np.random.default_rng(args.seed)
+    venv = CrispTrackVectorEnv(args.num_envs, clip=args.clip, scene_aware=args.scene_aware, num_threads=args.threads)
+    venv.reset(seed=args.seed)
+    substeps = venv.config.substeps
+
+    raw = mujoco.batch.Batch(venv.model, args.num_envs, nthread=args.threads, persistent=True)
+    qpos, qvel, ctrl = raw.bind("qpos"), raw.bind("qvel"), raw.bind("ctrl")
+    frames = venv.task.sample_start_frames(rng, args.num_envs)
+    qpos[:], qvel[:] = venv.task.reset_state(frames)
+    ctrl[:] = venv.task.reference.dof_pos[frames]
+    raw.forward()
+
+    def raw_step():
+        raw.step(nstep=substeps, stage=mujoco.mjtStage.mjSTAGE_VEL)
+
+    def reset_raw():  # keep the raw batch near the reference, as the env keeps resetting
+        qpos[:], qvel[:] = venv.task.reset_state(frames)
+        raw.forward()
+
+    zero = np.zeros((args.num_envs, venv.model.nu))
+    results = {}
+    raw_calls = 0
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < args.seconds:
+        for _ in range(20):
+            raw_step()
+        reset_raw()
+        raw_calls += 20
+    raw_rate = raw_calls * args.num_envs / (time.perf_counter() - t0)
+    results["raw_physics_env_steps_per_s"] = raw_rate
+    results["batched_env_steps_per_s"] = _rate(lambda: venv.step(zero), args.seconds) * args.num_envs
+    results["ratio_batched_to_raw"] = results["batched_env_steps_per_s"] / raw_rate
+
+    single = gym.make("CrispTrack-v0", clip=args.clip, scene_aware=args.scene_aware)
+    single.reset(seed=args.seed)
+    zero1 = np.zeros(venv.model.nu)
+
+    def single_step():
+        _, _, term, trunc, _ = single.step(zero1)
+        if term or trunc:
+            single.reset()
+
+    results["single_env_steps_per_s"] = _rate(single_step, args.seconds)
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make("CrispTrack-v0", clip=args.clip, scene_aware=args.scene_aware)
+                                     for _ in range(min(args.num_envs, 16))])
+    sync.reset(seed=args.seed)
+    zero_sync = np.zeros((sync.num_envs, venv.model.nu))
+    results["sync_vector_env_steps_per_s"] = _rate(lambda: sync.step(zero_sync), args.seconds) * sync.num_envs
+    sync.close()
+    single.close()
+    venv.close()
+
+    print(f"\nCrispTrack-v0 on '{args.clip}', {args.num_envs} envs, {args.threads} threads, "
+          f"{substeps} substeps, scene_aware={args.scene_aware}\n")
+    print("| what | env-steps/s |\n|---|---|")
+    for key in ("raw_physics_env_steps_per_s", "batched_env_steps_per_s", "single_env_steps_per_s",
+                "sync_vector_env_steps_per_s"):
+        print(f"| {key} | {results[key]:,.0f} |")
+    print(f"| ratio batched / raw | {results['ratio_batched_to_raw']:.3f} |")
+    return results
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,94 @@
+"""Clip directories: a scene and a motion that belong together.
+
+A clip directory holds ``scene.xml`` (MJCF, boxes only), ``motion.npz``, ``primitives.json``
+and ``meta.json`` (provenance, fps, scale, timings, counts). :func:`write_clip` builds the
+directory under a temporary name and renames it into place, so an interrupted run never
+leaves a half-written clip.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from crisp_gym.motion import Motion
+from crisp_gym.scene import Box, load_primitives, save_primitives, write_scene_xml
+
+CLIP_FILES = ("scene.xml", "motion.npz", "primitives.json", "meta.json")
+
+
+@dataclass(frozen=True)
+class Clip:
+    """A loaded clip.
+
+    Attributes:
+        path: the clip directory.
+        boxes: the scene's primitives.
+        motion: the reference motion, in the scene's frame.
+        meta: the contents of ``meta.json``.
+    """
+
+    path: Path
+    boxes: list[Box]
+    motion: Motion
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return str(self.meta.get("name", self.path.name))
+
+    @property
+    def scene_xml(self) -> Path:
+        return self.path / "scene.xml"
+
+
+def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: dict | None = None,
+               overwrite: bool = False) -> Path:
+    """Write a clip directory atomically and return its path.
+
+    ``meta`` is completed with the motion's ``fps``, ``num_frames`` and the primitive counts.
+    """
+    directory = Path(directory)
+    if directory.exists() and not overwrite:
+        raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
+    meta = dict(meta or {})
+    meta.setdefault("name", directory.name)
+    meta.update(fps=motion.fps, num_frames=motion.num_frames,
+                num_primitives=len(boxes),
+                num_contact_primitives=sum(b.source == "contact" for b in boxes))
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+    try:
+        write_scene_xml(boxes, tmp / "scene.xml")
+        motion.save(tmp / "motion.npz")
+        save_primitives(boxes, tmp / "primitives.json")
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
+        if directory.exists():
+            old = directory.with_name(f".{directory.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            directory.rename(old)
+            tmp.rename(directory)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(directory)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return directory
+
+
+def load_clip_dir(directory: str | Path) -> Clip:
+    """Load a clip directory, checking that every file is there."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"no clip directory at {directory}")
+    missing = [f for f in CLIP_FILES if not (directory / f).is_file()]
+    if missing:
+        raise FileNotFoundError(f"{directory} is not a complete clip: missing {missing} "
+                                f"(a clip holds {list(CLIP_FILES)})")
+    meta = json.loads((directory / "meta.json").read_text())
+    return Clip(path=directory, boxes=load_primitives(directory / "primitives.json"),
+                motion=Motion.load(directory / "motion.npz"), meta=meta)

@@ -1,0 +1,1 @@
+"""Gymnasium environments of crisp-gym (registered when :mod:`crisp_gym` is imported)."""

@@ -1,0 +1,82 @@
+"""Configuration of the tracking env; the defaults are the paper's values (Sec. 3.4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Every knob of ``CrispTrack-v0``; pass any field as a keyword to ``gym.make``.
+
+    Attributes:
+        sim_hz: physics rate (the humanoid model's timestep must match).
+        control_hz: policy rate; ``sim_hz / control_hz`` substeps per action.
+        residual_actions: PD targets are the next reference pose plus ``action_scale`` × action
+            (default); otherwise the action in [-1, 1] maps onto each hinge's range.
+        action_scale: radians per unit action in residual mode.
+        num_future_frames: K, the reference frames in the ``targets`` observation.
+        scene_aware: add the ``points`` observation (surface points of nearby primitives).
+        num_points: N, points in the ``points`` observation.
+        point_spacing: grid spacing (m) of the scene surface samples the points are drawn from.
+        point_radius: scene samples farther than this (m) from the motion's pelvis path are
+            never observed (keeps the candidate set small).
+        w_pos, w_rot, w_vel, w_ang_vel, w_height, w_energy: reward weights; the energy term
+            enters with a negative sign (a penalty).
+        a_pos, a_rot, a_vel, a_ang_vel, a_height: reward sharpness; each norm is the sum over
+            the 24 bodies of the per-body Euclidean error (m, rad, m/s, rad/s; the root height
+            error in m).
+        termination_distance: early termination when any body is farther than this (m)
+            from its reference.
+        rsi_first_frame_prob: reference state init from frame 0 with this probability, else
+            from a uniformly drawn frame.
+        random_start: ``False`` always starts at frame 0 (evaluation).
+        render_width, render_height: ``rgb_array`` frame size.
+    """
+
+    sim_hz: float = 120.0
+    control_hz: float = 30.0
+    residual_actions: bool = True
+    action_scale: float = 1.0
+    num_future_frames: int = 5
+    scene_aware: bool = False
+    num_points: int = 128
+    point_spacing: float = 0.1
+    point_radius: float = 2.5
+    w_pos: float = 2.5
+    w_rot: float = 1.5
+    w_vel: float = 0.5
+    w_ang_vel: float = 0.5
+    w_height: float = 1.0
+    w_energy: float = 0.001
+    a_pos: float = 1.5
+    a_rot: float = 0.3
+    a_vel: float = 0.12
+    a_ang_vel: float = 0.05
+    a_height: float = 20.0
+    termination_distance: float = 0.5
+    rsi_first_frame_prob: float = 0.1
+    random_start: bool = True
+    render_width: int = 640
+    render_height: int = 480
+
+    def __post_init__(self) -> None:
+        substeps = self.sim_hz / self.control_hz
+        if self.sim_hz <= 0 or self.control_hz <= 0 or abs(substeps - round(substeps)) > 1e-9:
+            raise ValueError(f"sim_hz ({self.sim_hz}) must be a positive multiple of control_hz "
+                             f"({self.control_hz})")
+        if self.num_future_frames < 1 or self.num_points < 1:
+            raise ValueError("num_future_frames and num_points must be at least 1")
+        if not 0.0 <= self.rsi_first_frame_prob <= 1.0:
+            raise ValueError(f"rsi_first_frame_prob must be in [0, 1], got {self.rsi_first_frame_prob}")
+        if self.termination_distance <= 0 or self.action_scale <= 0 or self.point_spacing <= 0:
+            raise ValueError("termination_distance, action_scale and point_spacing must be positive")
+
+    @property
+    def substeps(self) -> int:
+        return int(round(self.sim_hz / self.control_hz))
+
+
+def default_config() -> TrackConfig:
+    """The paper's configuration of the tracking env."""
+    return TrackConfig()

@@ -1,0 +1,138 @@
+"""``CrispTrack-v0``: a humanoid tracks a reconstructed motion in its reconstructed scene."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import fields, replace
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from crisp_gym.clip import Clip
+from crisp_gym.envs.config import TrackConfig, default_config
+from crisp_gym.envs.task import TrackingTask
+
+_CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
+
+
+def make_config(config: TrackConfig | None, overrides: dict[str, Any]) -> TrackConfig:
+    """``config`` (or the default) with keyword overrides; unknown keywords are an error."""
+    unknown = set(overrides) - _CONFIG_FIELDS
+    if unknown:
+        raise TypeError(f"unknown CrispTrack-v0 options {sorted(unknown)}; valid ones are "
+                        f"{sorted(_CONFIG_FIELDS)}")
+    return replace(config or default_config(), **overrides)
+
+
+class CrispTrackEnv(gym.Env):
+    """Track a clip's reference motion with the 24-body humanoid in the clip's scene.
+
+    The simulation runs at 120 Hz with ``implicitfast``; the policy acts at 30 Hz (4
+    substeps). Every :class:`~crisp_gym.envs.config.TrackConfig` field is a keyword.
+
+    ## Action space
+    ``Box(-1, 1, (69,))``: PD targets of the 69 hinges, by default a residual on the next
+    reference pose (``action_scale`` radians per unit); with ``residual_actions=False`` the
+    action maps [-1, 1] onto each hinge's range. Hinges are in
+    :data:`crisp_gym.humanoid.DOF_NAMES` order.
+
+    ## Observation space
+    ``Dict``, all float32, in the pelvis's heading frame:
+
+    | key        | shape      | content                                                        |
+    |------------|------------|----------------------------------------------------------------|
+    | `proprio`  | (361,)     | root height; body positions, rotations (6D), linear and angular velocities |
+    | `targets`  | (K, 432)   | per future reference frame and body: rotation difference, reference rotation, position difference, reference position relative to the root |
+    | `points`   | (N, 3)     | scene surface points nearest the pelvis (only with `scene_aware=True`) |
+
+    ## Reward
+    The paper's six terms, each in ``info["reward_terms"]``: position, rotation, linear
+    and angular velocity, root height (``w·exp(-α·error)``) and an energy penalty
+    ``-w_energy·Σ|τ·q̇|``.
+
+    ## Episode end
+    ``terminated`` when any body is more than ``termination_distance`` (0.5 m) from its
+    reference (or the state stops being finite); ``truncated`` at the clip's last frame, where
+    ``info["success"]`` is ``True``. Starts use reference state init (10 % from frame 0);
+    ``reset(options={"start_frame": k})`` picks the frame.
+
+    ## Info
+    ``frame``, ``start_frame``, ``reward_terms``, ``max_body_error`` (m), ``success``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, clip: str | os.PathLike | Clip = "flat_walk", scene_aware: bool = False,
+                 render_mode: str | None = None, config: TrackConfig | None = None, **overrides: Any):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.config = make_config(config, {"scene_aware": scene_aware, **overrides})
+        self.task = TrackingTask(clip, self.config)
+        self.model = self.task.model
+        self.data = mujoco.MjData(self.model)
+        self.observation_space = self.task.observation_space()
+        self.action_space = self.task.action_space()
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": self.config.control_hz}
+        self._frame = 0
+        self._start_frame = 0
+        self._renderer: mujoco.Renderer | None = None
+
+    def _state(self):
+        d = self.data
+        return self.task.read_state(d.qpos[None], d.qvel[None], d.xpos[None], d.xquat[None], d.cvel[None],
+                                    d.subtree_com[None], d.actuator_force[None])
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        if "start_frame" in options:
+            start = int(options["start_frame"])
+            if not 0 <= start < self.task.num_frames - 1:
+                raise ValueError(f"start_frame must be in [0, {self.task.num_frames - 2}], got {start}")
+        else:
+            start = int(self.task.sample_start_frames(self.np_random, 1)[0])
+        self._frame = self._start_frame = start
+        qpos, qvel = self.task.reset_state(np.array([start]))
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = qpos[0]
+        self.data.qvel[:] = qvel[0]
+        self.data.ctrl[:] = self.task.reference.dof_pos[start]
+        mujoco.mj_step1(self.model, self.data)
+        frame, state = np.array([start]), self._state()
+        obs = self.task.observe(state, frame)
+        error = self.task.evaluate(state, frame)[4]
+        return ({k: v[0] for k, v in obs.items()},
+                {"frame": start, "start_frame": start, "max_body_error": float(error[0])})
+
+    def step(self, action):
+        next_frame = np.array([self._frame + 1])
+        self.data.ctrl[:] = self.task.controls(np.asarray(action)[None], next_frame)[0]
+        # step2/step1 split: the derived fields end at the new state, as the batch's mjSTAGE_VEL.
+        for _ in range(self.config.substeps):
+            mujoco.mj_step2(self.model, self.data)
+            mujoco.mj_step1(self.model, self.data)
+        self._frame += 1
+        state = self._state()
+        reward, terms, terminated, truncated, error = self.task.evaluate(state, next_frame)
+        obs = self.task.observe(state, next_frame)
+        info = {"frame": self._frame, "start_frame": self._start_frame,
+                "reward_terms": {k: float(v[0]) for k, v in terms.items()},
+                "max_body_error": float(error[0]), "success": bool(truncated[0])}
+        return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),
+                bool(truncated[0]), info)
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, self.config.render_height, self.config.render_width)
+        self._renderer.update_scene(self.data, camera="follow")
+        return self._renderer.render()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -1,0 +1,230 @@
+"""The tracking task as pure functions over arrays with a leading batch dimension N.
+
+Both :class:`~crisp_gym.envs.track.CrispTrackEnv` (one ``MjData``) and
+:class:`~crisp_gym.envs.track_vector.CrispTrackVectorEnv` (``mujoco.batch.Batch``) read the
+same MuJoCo fields into a :class:`SimState` and call these functions, so they agree exactly.
+
+Observation features follow the paper (after MaskedMimic): everything is expressed in the
+root's *heading* frame (the pelvis yaw), rotations as the rotated x and z axes.
+
+=====================  ==========================================================  ==========
+key                    content                                                     shape
+=====================  ==========================================================  ==========
+``proprio``            root height (1); body positions relative to the root (24×3); (361,)
+                       body rotations (24×6); body linear (24×3) and angular
+                       (24×3) velocities
+``targets``            for each of the next K reference frames and each body:      (K, 432)
+                       rotation of reference relative to sim (6), reference
+                       rotation (6), reference − sim position (3), reference
+                       position relative to the sim root (3)
+``points``             N scene surface points nearest the pelvis, relative to it   (N, 3)
+                       (scene-aware only)
+=====================  ==========================================================  ==========
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from crisp_gym.envs import quat
+from crisp_gym.envs.config import TrackConfig
+from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg
+from crisp_gym.motion import Motion, compute_kinematics, humanoid_body_ids
+from crisp_gym.scene import Box, add_boxes, sample_surface_points
+
+NUM_BODIES = len(BODY_NAMES)
+PROPRIO_DIM = 1 + NUM_BODIES * (3 + 6 + 3 + 3)
+TARGET_DIM = NUM_BODIES * (6 + 6 + 3 + 3)
+REWARD_TERMS = ("pos", "rot", "vel", "ang_vel", "height", "energy")
+
+
+def build_track_model(boxes: list[Box], timestep: float) -> mujoco.MjModel:
+    """The humanoid composed with the scene's boxes, plus a camera that follows the pelvis."""
+    spec = build_humanoid_spec(HumanoidConfig(timestep=timestep))
+    add_boxes(spec, boxes)
+    spec.worldbody.add_light(name="key", pos=(0, 0, 5), dir=(0, 0, -1), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    spec.body("Pelvis").add_camera(name="follow", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
+                                   pos=(0.0, -3.5, 0.6), xyaxes=(1, 0, 0, 0, 0.17, 1))
+    return spec.compile()
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The reference motion at the control rate, with everything the task reads per frame."""
+
+    qpos: np.ndarray  # (T, 76)
+    qvel: np.ndarray  # (T, 75)
+    body_pos: np.ndarray  # (T, 24, 3)
+    body_quat: np.ndarray  # (T, 24, 4)
+    body_lin_vel: np.ndarray  # (T, 24, 3)
+    body_ang_vel: np.ndarray  # (T, 24, 3)
+
+    @property
+    def num_frames(self) -> int:
+        return self.qpos.shape[0]
+
+    @property
+    def dof_pos(self) -> np.ndarray:
+        return self.qpos[:, 7:]
+
+    @classmethod
+    def from_motion(cls, motion: Motion, model: mujoco.MjModel, control_hz: float) -> Reference:
+        motion = motion.in_humanoid_order().resample(control_hz)
+        if motion.num_frames < 2:
+            raise ValueError("the motion is shorter than one control step")
+        k = compute_kinematics(motion, model)
+        return cls(qpos=k.qpos, qvel=k.qvel, body_pos=k.body_pos, body_quat=k.body_quat,
+                   body_lin_vel=k.body_lin_vel, body_ang_vel=k.body_ang_vel)
+
+
+@dataclass(frozen=True)
+class SimState:
+    """What the task reads from the simulator, (N, ...) arrays."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    body_lin_vel: np.ndarray
+    body_ang_vel: np.ndarray
+    actuator_force: np.ndarray
+
+
+def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, body_ids) -> SimState:
+    """Assemble a :class:`SimState` from MuJoCo fields (each with a leading N).
+
+    ``cvel`` is the spatial velocity (angular, linear) at the root's subtree centre of mass,
+    so a body origin moves with ``v + ω × (x_body − c)``.
+    """
+    com = subtree_com[:, body_ids[:1]]
+    ang = cvel[:, body_ids, :3]
+    lin = cvel[:, body_ids, 3:] + quat.cross(ang, xpos[:, body_ids] - com)
+    return SimState(qpos=qpos, qvel=qvel, body_pos=xpos[:, body_ids], body_quat=xquat[:, body_ids],
+                    body_lin_vel=lin, body_ang_vel=ang, actuator_force=actuator_force)
+
+
+def _heading_inverse(root_quat: np.ndarray) -> np.ndarray:
+    """(N, 1, 4) inverse heading rotation, to broadcast over bodies."""
+    return quat.conjugate(quat.yaw_quat(root_quat))[:, None, :]
+
+
+def proprioception(state: SimState) -> np.ndarray:
+    """(N, 361) the paper's s_t in the heading frame."""
+    root_pos = state.body_pos[:, :1]
+    inv = _heading_inverse(state.body_quat[:, 0])
+    n = state.qpos.shape[0]
+    rel_pos = quat.rotate(inv, state.body_pos - root_pos)
+    rot = quat.tangent_normal(quat.multiply(np.broadcast_to(inv, state.body_quat.shape), state.body_quat))
+    lin = quat.rotate(inv, state.body_lin_vel)
+    ang = quat.rotate(inv, state.body_ang_vel)
+    return np.concatenate([root_pos[:, 0, 2:3], rel_pos.reshape(n, -1), rot.reshape(n, -1),
+                           lin.reshape(n, -1), ang.reshape(n, -1)], axis=1)
+
+
+def target_features(state: SimState, ref: Reference, frames: np.ndarray) -> np.ndarray:
+    """(N, K, 432) the paper's f̂ for reference frames ``frames`` (N, K)."""
+    n, k = frames.shape
+    inv = _heading_inverse(state.body_quat[:, 0])[:, None]  # (N, 1, 1, 4)
+    ref_quat = ref.body_quat[frames]  # (N, K, 24, 4)
+    ref_pos = ref.body_pos[frames]
+    sim_quat = state.body_quat[:, None]
+    sim_pos = state.body_pos[:, None]
+    rel_rot = quat.tangent_normal(quat.multiply(quat.conjugate(sim_quat), ref_quat))
+    ref_rot = quat.tangent_normal(quat.multiply(np.broadcast_to(inv, ref_quat.shape), ref_quat))
+    diff_pos = quat.rotate(inv, ref_pos - sim_pos)
+    rel_pos = quat.rotate(inv, ref_pos - sim_pos[:, :, :1])
+    return np.concatenate([rel_rot, ref_rot, diff_pos, rel_pos], axis=-1).reshape(n, k, -1)
+
+
+def future_frames(frame: np.ndarray, num_future: int, num_frames: int) -> np.ndarray:
+    """(N, K) the next K frame indices after ``frame``, held at the clip's last frame."""
+    return np.minimum(frame[:, None] + np.arange(1, num_future + 1), num_frames - 1)
+
+
+def nearest_points(state: SimState, points: np.ndarray, count: int) -> np.ndarray:
+    """(N, count, 3) the scene samples nearest the pelvis, in its heading frame."""
+    root = state.body_pos[:, 0]
+    dist = np.sum((points[None] - root[:, None]) ** 2, axis=-1)  # (N, P)
+    count_available = min(count, points.shape[0])
+    idx = np.argpartition(dist, count_available - 1, axis=1)[:, :count_available]
+    order = np.take_along_axis(dist, idx, axis=1).argsort(axis=1)
+    idx = np.take_along_axis(idx, order, axis=1)
+    chosen = points[idx] - root[:, None]
+    if count_available < count:  # fewer samples than slots: repeat the farthest
+        chosen = np.concatenate([chosen, np.repeat(chosen[:, -1:], count - count_available, axis=1)], axis=1)
+    inv = _heading_inverse(state.body_quat[:, 0])
+    return quat.rotate(inv, chosen)
+
+
+def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackConfig) -> dict[str, np.ndarray]:
+    """The paper's six reward terms, each (N,) and already weighted; the reward is their sum."""
+    pos_err = np.linalg.norm(ref.body_pos[frame] - state.body_pos, axis=-1).sum(-1)
+    rot_err = quat.angle(quat.multiply(ref.body_quat[frame], quat.conjugate(state.body_quat))).sum(-1)
+    vel_err = np.linalg.norm(ref.body_lin_vel[frame] - state.body_lin_vel, axis=-1).sum(-1)
+    ang_err = np.linalg.norm(ref.body_ang_vel[frame] - state.body_ang_vel, axis=-1).sum(-1)
+    height_err = np.abs(ref.body_pos[frame, 0, 2] - state.body_pos[:, 0, 2])
+    power = np.abs(state.actuator_force * state.qvel[:, 6:]).sum(-1)
+    return {
+        "pos": cfg.w_pos * np.exp(-cfg.a_pos * pos_err),
+        "rot": cfg.w_rot * np.exp(-cfg.a_rot * rot_err),
+        "vel": cfg.w_vel * np.exp(-cfg.a_vel * vel_err),
+        "ang_vel": cfg.w_ang_vel * np.exp(-cfg.a_ang_vel * ang_err),
+        "height": cfg.w_height * np.exp(-cfg.a_height * height_err),
+        "energy": -cfg.w_energy * power,
+    }
+
+
+def max_body_error(state: SimState, ref: Reference, frame: np.ndarray) -> np.ndarray:
+    """(N,) largest distance (m) of any body from its reference."""
+    return np.linalg.norm(ref.body_pos[frame] - state.body_pos, axis=-1).max(-1)
+
+
+def hinge_ranges() -> np.ndarray:
+    """(69, 2) hinge ranges in radians, in :data:`crisp_gym.humanoid.DOF_NAMES` order."""
+    return np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
+
+
+def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: TrackConfig,
+               ranges: np.ndarray) -> np.ndarray:
+    """(N, 69) PD targets: residual on the next reference pose, or absolute within the ranges."""
+    action = np.clip(action, -1.0, 1.0)
+    if cfg.residual_actions:
+        return ref.dof_pos[next_frame] + cfg.action_scale * action
+    mid, half = ranges.mean(axis=1), 0.5 * (ranges[:, 1] - ranges[:, 0])
+    return mid + half * action
+
+
+def sample_start_frames(rng: np.random.Generator, count: int, num_frames: int, cfg: TrackConfig) -> np.ndarray:
+    """Reference state init: frame 0 with ``rsi_first_frame_prob``, else uniform (never the last)."""
+    if not cfg.random_start:
+        return np.zeros(count, dtype=int)
+    uniform = rng.integers(0, num_frames - 1, size=count)
+    return np.where(rng.random(count) < cfg.rsi_first_frame_prob, 0, uniform)
+
+
+def scene_samples(boxes: list[Box], ref: Reference, cfg: TrackConfig) -> np.ndarray:
+    """(P, 3) surface samples of the scene within ``point_radius`` of the pelvis path."""
+    points, _ = sample_surface_points(_cropped(boxes, ref.body_pos[:, 0], cfg.point_radius), cfg.point_spacing)
+    path = ref.body_pos[:, 0]
+    step = max(1, len(path) // 200)
+    d = np.min(np.linalg.norm(points[:, None, :2] - path[None, ::step, :2], axis=-1), axis=1)
+    return points[d <= cfg.point_radius]
+
+
+def _cropped(boxes: list[Box], path: np.ndarray, radius: float) -> list[Box]:
+    """Axis-aligned boxes clipped to the path's neighbourhood (the floor is 40 m wide)."""
+    lo, hi = path.min(0) - radius, path.max(0) + radius
+    out = []
+    for box in boxes:
+        if not np.allclose(box.rotation, np.eye(3)):
+            out.append(box)
+            continue
+        b_lo = np.maximum(box.center - box.half_size, [lo[0], lo[1], -np.inf])
+        b_hi = np.minimum(box.center + box.half_size, [hi[0], hi[1], np.inf])
+        if np.all(b_hi > b_lo):
+            out.append(Box(center=(b_lo + b_hi) / 2, half_size=(b_hi - b_lo) / 2, source=box.source))
+    return out
+

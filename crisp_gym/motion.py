@@ -1,0 +1,358 @@
+"""Reference motions of the humanoid: the :class:`Motion` type and the ``motion.npz`` format.
+
+``motion.npz`` (``format_version`` 1) holds ``fps`` (scalar), ``root_pos`` (T, 3),
+``root_quat`` (T, 4, w x y z), ``dof_pos`` (T, 69) named by ``dof_names`` (69,), and
+``body_names`` (24,); optionally ``contacts`` (T, 24) bool and ``skeleton_offsets``
+(24, 3). Files always carry their names, and :meth:`Motion.load` reorders hinges by name
+into the humanoid's order, so no implied joint order is ever trusted.
+
+Kinematics (body positions, orientations and velocities) come from MuJoCo itself
+(:func:`compute_kinematics`), so the reference and the simulated humanoid can never disagree
+on what a posture means.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
+
+FORMAT_VERSION = 1
+
+
+def _as_names(names, expected_len: int, what: str) -> tuple[str, ...]:
+    names = tuple(str(n) for n in np.asarray(names).reshape(-1))
+    if len(names) != expected_len:
+        raise ValueError(f"{what} must name {expected_len} entries, got {len(names)}")
+    return names
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A reference motion of the 24-body humanoid.
+
+    Attributes:
+        fps: frames per second of the arrays.
+        root_pos: (T, 3) pelvis position in metres, world frame (z up).
+        root_quat: (T, 4) pelvis orientation, w x y z.
+        dof_pos: (T, 69) hinge angles in radians, in the order of ``dof_names``.
+        dof_names: the 69 hinge names (:data:`crisp_gym.humanoid.DOF_NAMES` after loading).
+        body_names: the 24 body names (:data:`crisp_gym.humanoid.BODY_NAMES`).
+        contacts: optional (T, 24) bool, body in contact with the scene.
+        skeleton_offsets: optional (24, 3) rest offsets of each joint from its parent (metres).
+    """
+
+    fps: float
+    root_pos: np.ndarray
+    root_quat: np.ndarray
+    dof_pos: np.ndarray
+    dof_names: tuple[str, ...] = DOF_NAMES
+    body_names: tuple[str, ...] = BODY_NAMES
+    contacts: np.ndarray | None = None
+    skeleton_offsets: np.ndarray | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        fps = float(np.asarray(self.fps).reshape(()))
+        if not np.isfinite(fps) or fps <= 0:
+            raise ValueError(f"fps must be a positive number, got {self.fps}")
+        object.__setattr__(self, "fps", fps)
+        arrays = {k: np.asarray(getattr(self, k), dtype=float) for k in ("root_pos", "root_quat", "dof_pos")}
+        t = arrays["root_pos"].shape[0] if arrays["root_pos"].ndim == 2 else -1
+        expected = {"root_pos": (t, 3), "root_quat": (t, 4), "dof_pos": (t, len(DOF_NAMES))}
+        for key, shape in expected.items():
+            if arrays[key].shape != shape:
+                raise ValueError(f"{key} must have shape (T, {shape[1]}) with T frames shared by "
+                                 f"root_pos/root_quat/dof_pos, got {arrays[key].shape}")
+            bad = ~np.isfinite(arrays[key])
+            if bad.any():
+                frame = int(np.argwhere(bad)[0, 0])
+                raise ValueError(f"{key} has non-finite values (first at frame {frame})")
+        if t < 2:
+            raise ValueError(f"a motion needs at least 2 frames, got {t}")
+        norms = np.linalg.norm(arrays["root_quat"], axis=1)
+        if np.any(np.abs(norms - 1.0) > 1e-3):
+            frame = int(np.argmax(np.abs(norms - 1.0)))
+            raise ValueError(f"root_quat must be unit quaternions (w, x, y, z); frame {frame} has "
+                             f"norm {norms[frame]:.4f}")
+        arrays["root_quat"] = arrays["root_quat"] / norms[:, None]
+        for key, value in arrays.items():
+            object.__setattr__(self, key, value)
+        object.__setattr__(self, "dof_names", _as_names(self.dof_names, len(DOF_NAMES), "dof_names"))
+        object.__setattr__(self, "body_names", _as_names(self.body_names, len(BODY_NAMES), "body_names"))
+        if self.contacts is not None:
+            contacts = np.asarray(self.contacts).astype(bool)
+            if contacts.shape != (t, len(BODY_NAMES)):
+                raise ValueError(f"contacts must have shape ({t}, 24), got {contacts.shape}")
+            object.__setattr__(self, "contacts", contacts)
+        if self.skeleton_offsets is not None:
+            offsets = np.asarray(self.skeleton_offsets, dtype=float)
+            if offsets.shape != (len(BODY_NAMES), 3):
+                raise ValueError(f"skeleton_offsets must have shape (24, 3), got {offsets.shape}")
+            object.__setattr__(self, "skeleton_offsets", offsets)
+
+    @property
+    def num_frames(self) -> int:
+        return self.root_pos.shape[0]
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first to the last frame."""
+        return (self.num_frames - 1) / self.fps
+
+    def in_humanoid_order(self) -> Motion:
+        """This motion with hinges and bodies reordered by name into the humanoid's order."""
+        if self.dof_names == DOF_NAMES and self.body_names == BODY_NAMES:
+            return self
+        missing = sorted(set(DOF_NAMES) - set(self.dof_names))
+        if missing:
+            raise ValueError(f"dof_names lacks the humanoid's hinges {missing[:5]}...")
+        missing_bodies = sorted(set(BODY_NAMES) - set(self.body_names))
+        if missing_bodies:
+            raise ValueError(f"body_names lacks the humanoid's bodies {missing_bodies[:5]}")
+        dof_index = [self.dof_names.index(n) for n in DOF_NAMES]
+        body_index = [self.body_names.index(n) for n in BODY_NAMES]
+        return replace(
+            self, dof_pos=self.dof_pos[:, dof_index], dof_names=DOF_NAMES, body_names=BODY_NAMES,
+            contacts=None if self.contacts is None else self.contacts[:, body_index],
+            skeleton_offsets=None if self.skeleton_offsets is None else self.skeleton_offsets[body_index])
+
+    def qpos(self) -> np.ndarray:
+        """(T, 76) MuJoCo qpos of the humanoid: root position, root quaternion, 69 hinges."""
+        m = self.in_humanoid_order()
+        return np.concatenate([m.root_pos, m.root_quat, m.dof_pos], axis=1)
+
+    def qvel(self) -> np.ndarray:
+        """(T, 75) MuJoCo qvel by central finite differences.
+
+        The free joint's linear velocity is in the world frame and its angular velocity in the
+        body frame, as MuJoCo defines them.
+        """
+        m = self.in_humanoid_order()
+        dt = 1.0 / m.fps
+        lin = np.gradient(m.root_pos, dt, axis=0)
+        rot = Rotation.from_quat(m.root_quat, scalar_first=True)
+        ang = local_angular_velocity(rot, dt)
+        dof_vel = np.gradient(m.dof_pos, dt, axis=0)
+        return np.concatenate([lin, ang, dof_vel], axis=1)
+
+    def resample(self, fps: float) -> Motion:
+        """The motion at ``fps``: slerp for the root orientation, linear for the rest.
+
+        Hinge angles are joint coordinates (continuous, possibly beyond ±90°), so they are
+        interpolated directly; converting them to rotations and back would alias.
+        """
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        if abs(fps - self.fps) < 1e-9:
+            return self
+        t_old = np.arange(self.num_frames) / self.fps
+        n_new = int(np.floor(self.duration * fps + 1e-9)) + 1
+        t_new = np.arange(n_new) / fps
+        interp = lambda a: np.stack([np.interp(t_new, t_old, col) for col in a.T], axis=1)  # noqa: E731
+        slerp = Slerp(t_old, Rotation.from_quat(self.root_quat, scalar_first=True))
+        contacts = None
+        if self.contacts is not None:
+            nearest = np.clip(np.round(t_new * self.fps).astype(int), 0, self.num_frames - 1)
+            contacts = self.contacts[nearest]
+        return replace(self, fps=float(fps), root_pos=interp(self.root_pos),
+                       root_quat=slerp(t_new).as_quat(scalar_first=True),
+                       dof_pos=interp(self.dof_pos), contacts=contacts)
+
+    def slice(self, start: int, stop: int | None = None) -> Motion:
+        """Frames ``start:stop``."""
+        sl = slice(start, stop)
+        return replace(self, root_pos=self.root_pos[sl], root_quat=self.root_quat[sl],
+                       dof_pos=self.dof_pos[sl],
+                       contacts=None if self.contacts is None else self.contacts[sl])
+
+    def translated(self, offset) -> Motion:
+        """The motion moved by a constant world offset (3,)."""
+        return replace(self, root_pos=self.root_pos + np.asarray(offset, dtype=float))
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``motion.npz`` atomically (temp file, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = dict(
+            format_version=np.int64(FORMAT_VERSION), fps=np.float64(self.fps),
+            root_pos=self.root_pos, root_quat=self.root_quat, dof_pos=self.dof_pos,
+            dof_names=np.array(self.dof_names), body_names=np.array(self.body_names))
+        if self.contacts is not None:
+            arrays["contacts"] = self.contacts
+        if self.skeleton_offsets is not None:
+            arrays["skeleton_offsets"] = self.skeleton_offsets
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Motion:
+        """Read and validate a ``motion.npz``; hinges are returned in the humanoid's order."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no motion file at {path}")
+        with np.load(path, allow_pickle=False) as data:
+            keys = set(data.files)
+            required = {"fps", "root_pos", "root_quat", "dof_pos", "dof_names", "body_names"}
+            if not required <= keys:
+                raise ValueError(f"{path} is not a motion.npz: missing {sorted(required - keys)} "
+                                 f"(has {sorted(keys)})")
+            version = int(data["format_version"]) if "format_version" in keys else FORMAT_VERSION
+            if version != FORMAT_VERSION:
+                raise ValueError(f"{path}: format_version {version} is not supported (expected 1)")
+            motion = cls(
+                fps=data["fps"], root_pos=data["root_pos"], root_quat=data["root_quat"],
+                dof_pos=data["dof_pos"], dof_names=data["dof_names"], body_names=data["body_names"],
+                contacts=data["contacts"] if "contacts" in keys else None,
+                skeleton_offsets=data["skeleton_offsets"] if "skeleton_offsets" in keys else None)
+        return motion.in_humanoid_order()
+
+
+def local_angular_velocity(rotations: Rotation, dt: float) -> np.ndarray:
+    """(T, 3) body-frame angular velocity of a rotation sequence, by central differences."""
+    n = len(rotations)
+    prev = np.r_[0, np.arange(n - 1)]
+    nxt = np.r_[np.arange(1, n), n - 1]
+    span = (nxt - prev) * dt
+    return (rotations[prev].inv() * rotations[nxt]).as_rotvec() / span[:, None]
+
+
+def rotations_to_hinge_angles(rotations: np.ndarray) -> np.ndarray:
+    """(T, J, 3) continuous x-y-z hinge angles for (T, J, 3, 3) local rotation matrices.
+
+    Every rotation has two intrinsic XYZ Euler triples, ``(a, b, c)`` and
+    ``(a + π, π - b, c + π)``; the first frame takes the one nearer the rest pose, and each
+    later frame the one (with 2π unwrapping) nearest the previous frame. This keeps a knee
+    flexed past 90° a knee flexion rather than a flipped twist.
+    """
+    rotations = np.asarray(rotations, dtype=float)
+    t, j = rotations.shape[:2]
+    first = Rotation.from_matrix(rotations.reshape(-1, 3, 3)).as_euler("XYZ").reshape(t, j, 3)
+    second = first + np.array([np.pi, 0.0, np.pi])
+    second[..., 1] = np.pi - first[..., 1]
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    first, second = wrap(first), wrap(second)
+    out = np.empty_like(first)
+    previous = np.zeros((j, 3))
+    for k in range(t):
+        candidates = []
+        for option in (first[k], second[k]):
+            unwrapped = previous + wrap(option - previous)
+            candidates.append(unwrapped)
+        dist = [np.linalg.norm(c - previous, axis=1) for c in candidates]
+        if k == 0:  # nearest the rest pose, without unwrapping
+            candidates = [first[0], second[0]]
+            dist = [np.linalg.norm(c, axis=1) for c in candidates]
+        out[k] = np.where((dist[0] <= dist[1])[:, None], candidates[0], candidates[1])
+        previous = out[k]
+    return out
+
+
+def hinge_angles_to_rotations(angles: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) local rotations for (..., 3) x-y-z hinge angles (inverse of the above)."""
+    angles = np.asarray(angles, dtype=float)
+    mats = Rotation.from_euler("XYZ", angles.reshape(-1, 3)).as_matrix()
+    return mats.reshape(*angles.shape[:-1], 3, 3)
+
+
+@dataclass(frozen=True)
+class MotionKinematics:
+    """Per-frame quantities of a motion on a model, all in the world frame.
+
+    Attributes:
+        qpos: (T, nq), qvel: (T, nv) of the humanoid.
+        body_pos: (T, 24, 3) body (joint) positions; body_quat: (T, 24, 4) w x y z.
+        body_lin_vel: (T, 24, 3); body_ang_vel: (T, 24, 3), world frame.
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    body_lin_vel: np.ndarray
+    body_ang_vel: np.ndarray
+
+
+def humanoid_body_ids(model: mujoco.MjModel) -> np.ndarray:
+    """Ids of the 24 humanoid bodies in :data:`BODY_NAMES` order (also inside a scene model)."""
+    try:
+        return np.array([model.body(name).id for name in BODY_NAMES])
+    except KeyError as err:
+        raise ValueError(f"the model lacks a humanoid body: {err}") from None
+
+
+def humanoid_qpos_adr(model: mujoco.MjModel) -> int:
+    """Start of the humanoid's qpos block in ``model`` (its free joint)."""
+    return int(model.jnt_qposadr[model.joint(ROOT_JOINT).id])
+
+
+def compute_kinematics(motion: Motion, model: mujoco.MjModel) -> MotionKinematics:
+    """Forward kinematics of ``motion`` with MuJoCo, and velocities by central differences."""
+    motion = motion.in_humanoid_order()
+    data = mujoco.MjData(model)
+    ids = humanoid_body_ids(model)
+    adr = humanoid_qpos_adr(model)
+    qpos = motion.qpos()
+    t = motion.num_frames
+    body_pos = np.empty((t, len(ids), 3))
+    body_quat = np.empty((t, len(ids), 4))
+    for k in range(t):
+        data.qpos[adr:adr + qpos.shape[1]] = qpos[k]
+        mujoco.mj_kinematics(model, data)
+        body_pos[k] = data.xpos[ids]
+        body_quat[k] = data.xquat[ids]
+    dt = 1.0 / motion.fps
+    rot = Rotation.from_quat(body_quat.reshape(-1, 4), scalar_first=True)
+    local = local_angular_velocity_batched(body_quat, dt)
+    ang_world = rot.apply(local.reshape(-1, 3)).reshape(t, len(ids), 3)
+    return MotionKinematics(
+        qpos=qpos, qvel=motion.qvel(), body_pos=body_pos, body_quat=body_quat,
+        body_lin_vel=np.gradient(body_pos, dt, axis=0), body_ang_vel=ang_world)
+
+
+def local_angular_velocity_batched(quats: np.ndarray, dt: float) -> np.ndarray:
+    """(T, B, 3) body-frame angular velocities of (T, B, 4) quaternion tracks."""
+    t, b = quats.shape[:2]
+    out = np.empty((t, b, 3))
+    for i in range(b):
+        out[:, i] = local_angular_velocity(Rotation.from_quat(quats[:, i], scalar_first=True), dt)
+    return out
+
+
+def foot_sole_heights(motion: Motion, model: mujoco.MjModel) -> np.ndarray:
+    """(T,) height of the lowest point of the foot geoms in each frame."""
+    motion = motion.in_humanoid_order()
+    data = mujoco.MjData(model)
+    adr = humanoid_qpos_adr(model)
+    foot_bodies = {model.body(name).id for name in FEET}
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in foot_bodies]
+    qpos = motion.qpos()
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    lowest = np.empty(motion.num_frames)
+    for k in range(motion.num_frames):
+        data.qpos[adr:adr + qpos.shape[1]] = qpos[k]
+        mujoco.mj_kinematics(model, data)
+        z = []
+        for g in geoms:
+            pts = data.geom_xpos[g] + (corners * model.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
+            z.append(pts[:, 2].min())
+        lowest[k] = min(z)
+    return lowest
+
+
+def ground(motion: Motion, model: mujoco.MjModel, floor_height: float = 0.0,
+           percentile: float = 5.0) -> Motion:
+    """Shift the motion vertically so its lowest foot rests on ``floor_height``.
+
+    The lowest foot point per frame is taken at a low ``percentile`` over the clip rather than
+    the minimum, so a few noisy frames cannot sink the whole motion.
+    """
+    sole = foot_sole_heights(motion, model)
+    return motion.translated([0.0, 0.0, floor_height - np.percentile(sole, percentile)])

@@ -1,0 +1,90 @@
+"""Clip registries: names to clip directories.
+
+Two YAML files are read, the user's entries shadowing the bundled ones:
+
+* the bundled ``registry.yaml`` at the project root (clips in ``assets/clips``);
+* the user registry, ``$CRISP_GYM_USER_REGISTRY`` or ``<user data dir>/crisp-gym/registry.yaml``,
+  where ``crisp import-motion`` and ``crisp reconstruct --register`` add clips. It never
+  lives inside the installed package.
+
+Both have the form ``clips: {NAME: {path: DIR, tags: [..]}}``; a relative ``path`` is
+relative to the registry file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import platformdirs
+import yaml
+
+from crisp_gym.clip import Clip, load_clip_dir
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+BUNDLED_REGISTRY = PROJECT_ROOT / "registry.yaml"
+
+
+def user_registry_path() -> Path:
+    """Where user clips are registered."""
+    override = os.environ.get("CRISP_GYM_USER_REGISTRY")
+    if override:
+        return Path(override)
+    return Path(platformdirs.user_data_dir("crisp-gym")) / "registry.yaml"
+
+
+def _read(path: Path) -> dict[str, dict]:
+    if not path.is_file():
+        return {}
+    content = yaml.safe_load(path.read_text()) or {}
+    clips = content.get("clips", {}) if isinstance(content, dict) else None
+    if not isinstance(clips, dict):
+        raise ValueError(f"{path} must have the form 'clips: {{NAME: {{path: DIR, tags: [...]}}}}'")
+    entries = {}
+    for name, entry in clips.items():
+        if not isinstance(entry, dict) or "path" not in entry:
+            raise ValueError(f"{path}: clip {name!r} needs a 'path'")
+        clip_path = Path(entry["path"]).expanduser()
+        if not clip_path.is_absolute():
+            clip_path = path.parent / clip_path
+        entries[str(name)] = {"path": clip_path, "tags": list(entry.get("tags", []))}
+    return entries
+
+
+def list_clips() -> dict[str, dict]:
+    """All registered clips: name -> {"path": Path, "tags": [...]} (user entries win)."""
+    return {**_read(BUNDLED_REGISTRY), **_read(user_registry_path())}
+
+
+def resolve_clip(name_or_path: str | os.PathLike) -> Path:
+    """The directory of a registered clip name, or ``name_or_path`` itself if it is a directory."""
+    candidate = Path(name_or_path).expanduser()
+    if candidate.is_dir():
+        return candidate
+    clips = list_clips()
+    name = str(name_or_path)
+    if name not in clips:
+        raise ValueError(f"unknown clip {name!r}: not a directory and not registered; "
+                         f"registered clips are {sorted(clips)}")
+    return clips[name]["path"]
+
+
+def load_clip(name_or_path: str | os.PathLike) -> Clip:
+    """Load a clip by registered name or directory."""
+    return load_clip_dir(resolve_clip(name_or_path))
+
+
+def register_clip(name: str, path: str | Path, tags: list[str] | None = None,
+                  registry: Path | None = None) -> Path:
+    """Add (or replace) a clip in the user registry; returns the registry file."""
+    if not name or any(c.isspace() for c in name):
+        raise ValueError(f"clip names must be non-empty without whitespace, got {name!r}")
+    registry = registry or user_registry_path()
+    content = yaml.safe_load(registry.read_text()) if registry.is_file() else None
+    content = content or {}
+    content.setdefault("clips", {})[name] = {"path": str(Path(path).resolve()), "tags": list(tags or [])}
+    registry.parent.mkdir(parents=True, exist_ok=True)
+    tmp = registry.with_name(registry.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(content, sort_keys=True))
+    tmp.replace(registry)
+    return registry
