@@ -4,7 +4,14 @@ Importing the package registers ``CrispTrack-v0`` with Gymnasium (single env and
 ``gym.make_vec(..., vectorization_mode="vector_entry_point")``, the batched env).
 """
 
-import gymnasium as gym
+import os
+
+# Headless machines have no display for GLFW; MuJoCo reads MUJOCO_GL when it is imported,
+# so the offscreen backend must be chosen here, before anything imports mujoco.
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "egl"
+
+import gymnasium as gym  # noqa: E402
 
 __version__ = "0.1.0"
 

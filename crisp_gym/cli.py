@@ -1,0 +1,44 @@
+"""The ``crisp`` command: one subcommand per job, each a module with ``main(argv) -> int``.
+
+Subcommand modules are imported only when run, so ``crisp --help`` and light commands do
+not pay for torch or open3d.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("crisp_gym.demo", "run the demo on a bundled clip: rollout, report and video"),
+    "clips": ("crisp_gym.clips_cli", "list the registered clips"),
+    "import-motion": ("crisp_gym.import_motion", "make a flat-ground clip from a BVH/SMPL/motion.npz file"),
+    "synth-clips": ("reconstruct.synth", "regenerate the bundled synthetic clips"),
+    "train": ("train.ppo", "train a tracking policy with PPO"),
+    "gap": ("crisp_gym.sim2real.cli", "sim-to-real gap: `crisp gap diagnose` / `crisp gap bench`"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: crisp COMMAND [ARGS...]", "", "commands:"]
+    lines += [f"  {name:<14} {help_}" for name, (_, help_) in COMMANDS.items()]
+    lines += ["", "`crisp COMMAND --help` describes a command's options."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"crisp: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    result = module.main(rest)
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode
+
+import crisp_gym  # noqa: F401
+from crisp_gym.envs.track import CrispTrackEnv
+from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+from crisp_gym.registry import BUNDLED_REGISTRY, _read
+
+
+def bundled_clip_names() -> list[str]:
+    return sorted(_read(BUNDLED_REGISTRY))
+
+
+def test_bundled_clips_are_registered():
+    assert {"flat_walk", "stairs_up", "platform_step", "chair_sit"} <= set(bundled_clip_names())
+
+
+@pytest.mark.parametrize("scene_aware", [False, True])
+def test_check_env(sway_clip, scene_aware):
+    env = gym.make("CrispTrack-v0", clip=str(sway_clip), scene_aware=scene_aware)
+    check_env(env.unwrapped, skip_render_check=True)
+    obs, _ = env.reset(seed=0)
+    assert obs["proprio"].shape == (361,) and obs["targets"].shape == (5, 432)
+    assert ("points" in obs) == scene_aware
+    if scene_aware:
+        assert obs["points"].shape == (128, 3)
+        # points are relative to the pelvis: the nearest lies on the floor, about a pelvis height below
+        assert np.min(np.linalg.norm(obs["points"], axis=1)) < 1.2
+
+
+@pytest.mark.parametrize("clip", ["sway", *bundled_clip_names()])
+def test_reset_matches_reference_and_pd_tracking_runs_clean(sway_clip, clip):
+    env = CrispTrackEnv(clip=str(sway_clip) if clip == "sway" else clip)
+    frames = np.linspace(0, env.task.num_frames - 2, 5).astype(int)
+    for frame in frames:
+        _, info = env.reset(seed=1, options={"start_frame": int(frame)})
+        assert info["max_body_error"] < 0.01  # the model and the motion agree
+    env.reset(seed=0, options={"start_frame": 0})
+    zero = np.zeros(69, dtype=np.float32)
+    steps = 0
+    while True:
+        _, reward, terminated, truncated, info = env.step(zero)
+        steps += 1
+        assert np.isfinite(reward) and np.all(np.isfinite(env.data.qpos))
+        assert not any(w.number for w in env.data.warning), "MuJoCo warned"
+        assert set(info["reward_terms"]) == {"pos", "rot", "vel", "ang_vel", "height", "energy"}
+        assert reward == pytest.approx(sum(info["reward_terms"].values()))
+        if terminated or truncated:
+            break
+    assert steps <= env.task.num_frames - 1
+    assert info["success"] == truncated and (truncated or info["max_body_error"] > 0.5)
+
+
+def test_single_and_batched_envs_agree_step_by_step(sway_clip):
+    starts = np.array([0, 7, 21])
+    venv = CrispTrackVectorEnv(len(starts), clip=str(sway_clip), scene_aware=True, num_threads=1)
+    vobs, _ = venv.reset(seed=0, options={"start_frame": starts})
+    singles = [CrispTrackEnv(clip=str(sway_clip), scene_aware=True) for _ in starts]
+    sobs = [env.reset(seed=0, options={"start_frame": int(s)})[0] for env, s in zip(singles, starts)]
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        for key in vobs:
+            np.testing.assert_allclose(vobs[key], np.stack([o[key] for o in sobs]), atol=1e-6)
+        actions = rng.uniform(-0.05, 0.05, (len(starts), 69)).astype(np.float32)
+        vobs, vrew, vterm, vtrunc, vinfo = venv.step(actions)
+        results = [env.step(a) for env, a in zip(singles, actions)]
+        sobs = [r[0] for r in results]
+        np.testing.assert_allclose(vrew, [r[1] for r in results], rtol=1e-9, atol=1e-9)
+        for term in vinfo["reward_terms"]:
+            np.testing.assert_allclose(vinfo["reward_terms"][term], [r[4]["reward_terms"][term] for r in results],
+                                       rtol=1e-9, atol=1e-9)
+        assert not vterm.any() and not vtrunc.any()
+
+
+def test_make_vec_and_same_step_autoreset(sway_clip):
+    venv = gym.make_vec("CrispTrack-v0", num_envs=4, vectorization_mode="vector_entry_point", clip=str(sway_clip))
+    assert isinstance(venv, CrispTrackVectorEnv)
+    assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP == venv.autoreset_mode
+    num_frames = venv.task.num_frames
+    venv.reset(seed=0, options={"start_frame": num_frames - 3})
+    zero = np.zeros((4, 69))
+    venv.step(zero)
+    obs, _, terminated, truncated, info = venv.step(zero)  # reaches the last frame
+    assert truncated.all() and not terminated.any() and info["success"].all()
+    assert info["_final_obs"].all() and info["final_info"][0]["success"]
+    # the returned observation already belongs to the next episode
+    assert not np.allclose(obs["targets"], np.stack([o["targets"] for o in info["final_obs"]]))
+    assert np.all(venv._frame < num_frames - 1)
+
+
+def test_bad_arguments_get_clear_errors(sway_clip):
+    with pytest.raises(TypeError, match="unknown CrispTrack-v0 options"):
+        CrispTrackEnv(clip=str(sway_clip), not_an_option=1)
+    with pytest.raises(ValueError, match="unknown clip"):
+        CrispTrackEnv(clip="no_such_clip")
+    env = CrispTrackEnv(clip=str(sway_clip))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="69"):
+        env.step(np.zeros(12))
+    with pytest.raises(ValueError, match="start_frame"):
+        env.reset(options={"start_frame": 10_000})
+    with pytest.raises(ValueError, match="multiple"):
+        CrispTrackEnv(clip=str(sway_clip), control_hz=50.0)
+
+
+def test_rsi_draws_frame_zero_about_ten_percent(sway_clip):
+    env = CrispTrackEnv(clip=str(sway_clip))
+    starts = np.array([env.reset(seed=s)[1]["start_frame"] for s in range(400)])
+    share = np.mean(starts == 0)
+    assert 0.06 < share < 0.16  # 10 % plus the uniform draw's 1/(T-1)
+    assert starts.max() <= env.task.num_frames - 2 and len(np.unique(starts)) > 20
+
+
+def test_render_rgb_array(sway_clip):
+    env = CrispTrackEnv(clip=str(sway_clip), render_mode="rgb_array", render_width=160, render_height=120)
+    env.reset(seed=0)
+    image = env.render()
+    env.close()
+    assert image.shape == (120, 160, 3) and image.dtype == np.uint8 and image.std() > 5

@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
+from crisp_gym.motion import (Motion, compute_kinematics, foot_sole_heights, ground, hinge_angles_to_rotations,
+                              rotations_to_hinge_angles)
+from tests.conftest import sway_motion
+
+
+def _random_motion(frames=20, seed=0) -> Motion:
+    rng = np.random.default_rng(seed)
+    quats = Rotation.from_rotvec(rng.normal(0, 0.3, (frames, 3))).as_quat(scalar_first=True)
+    return Motion(fps=30, root_pos=rng.normal(0, 1, (frames, 3)), root_quat=quats,
+                  dof_pos=rng.normal(0, 0.3, (frames, 69)), contacts=rng.random((frames, 24)) > 0.5)
+
+
+def test_npz_round_trip_and_reordering(tmp_path):
+    motion = _random_motion()
+    # write with a shuffled hinge order: loading must put every column back by name
+    perm = np.random.default_rng(1).permutation(69)
+    shuffled = Motion(fps=motion.fps, root_pos=motion.root_pos, root_quat=motion.root_quat,
+                      dof_pos=motion.dof_pos[:, perm], dof_names=tuple(np.array(DOF_NAMES)[perm]),
+                      contacts=motion.contacts)
+    loaded = Motion.load(shuffled.save(tmp_path / "motion.npz"))
+    np.testing.assert_array_equal(loaded.dof_pos, motion.dof_pos)
+    np.testing.assert_array_equal(loaded.contacts, motion.contacts)
+    assert loaded.dof_names == DOF_NAMES and loaded.body_names == BODY_NAMES
+    with np.load(tmp_path / "motion.npz") as data:
+        assert int(data["format_version"]) == 1 and data["dof_pos"].shape == (20, 69)
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(fps=0), "fps"),
+    (dict(root_pos=np.full((20, 3), np.nan)), "non-finite"),
+    (dict(root_quat=np.tile([2.0, 0, 0, 0], (20, 1))), "unit quaternions"),
+    (dict(dof_pos=np.zeros((20, 68))), "dof_pos"),
+    (dict(dof_names=DOF_NAMES[:-1]), "dof_names"),
+])
+def test_validation_errors(change, message):
+    base = _random_motion()
+    fields = dict(fps=base.fps, root_pos=base.root_pos, root_quat=base.root_quat, dof_pos=base.dof_pos)
+    fields.update(change)
+    with pytest.raises(ValueError, match=message):
+        Motion(**fields)
+
+
+def test_load_rejects_bad_files(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        Motion.load(tmp_path / "absent.npz")
+    np.savez(tmp_path / "bad.npz", fps=30.0, root_pos=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="missing"):
+        Motion.load(tmp_path / "bad.npz")
+
+
+def test_hinge_angle_conversion_is_continuous_past_90_degrees():
+    t = np.linspace(0, 1, 80)
+    angles = np.zeros((80, 2, 3))
+    angles[:, 0, 1] = 2.6 * t  # knee-like flexion to 150 degrees
+    angles[:, 1] = np.c_[0.4 * np.sin(6 * t), 1.4 * t, -0.5 * t]
+    recovered = rotations_to_hinge_angles(hinge_angles_to_rotations(angles))
+    np.testing.assert_allclose(recovered, angles, atol=1e-9)
+
+
+def test_resample_matches_analytic_motion():
+    fps = 30.0
+    t = np.arange(31) / fps
+    yaw = 0.8 * t
+    quats = Rotation.from_euler("z", yaw[:, None]).as_quat(scalar_first=True)
+    dof = np.outer(t, np.ones(69)) * 0.1
+    motion = Motion(fps=fps, root_pos=np.c_[t, 2 * t, np.ones_like(t)], root_quat=quats, dof_pos=dof)
+    fine = motion.resample(120.0)
+    t_new = np.arange(fine.num_frames) / 120.0
+    assert fine.num_frames == 121 and fine.duration == pytest.approx(motion.duration)
+    np.testing.assert_allclose(fine.root_pos[:, 1], 2 * t_new, atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_quat(fine.root_quat, scalar_first=True).as_euler("xyz")[:, 2],
+                               0.8 * t_new, atol=1e-9)  # slerp of a constant-rate yaw is exact
+    np.testing.assert_allclose(fine.dof_pos[:, 5], 0.1 * t_new, atol=1e-12)
+
+
+def test_kinematics_velocities_match_motion():
+    model = build_humanoid()
+    motion = sway_motion(frames=40)
+    kin = compute_kinematics(motion, model)
+    # the pelvis drifts at 0.1 m/s in x; its angular velocity is zero
+    np.testing.assert_allclose(kin.body_lin_vel[5:-5, 0], [[0.1, 0, 0]] * 30, atol=1e-9)
+    np.testing.assert_allclose(kin.body_ang_vel[:, 0], 0.0, atol=1e-9)
+    # the left knee's hinge rate equals the shank's angular speed about the y axis
+    knee = BODY_NAMES.index("L_Knee")
+    rate = np.gradient(motion.dof_pos[:, DOF_NAMES.index("L_Knee_y")], 1 / 30)
+    hip_rate = np.gradient(motion.dof_pos[:, DOF_NAMES.index("L_Hip_y")], 1 / 30)
+    np.testing.assert_allclose(kin.body_ang_vel[2:-2, knee, 1], (rate + hip_rate)[2:-2], atol=2e-3)
+
+
+def test_ground_puts_the_lowest_foot_on_the_floor():
+    model = build_humanoid()
+    motion = sway_motion().translated([0, 0, 0.3])
+    grounded = ground(motion, model, floor_height=0.1)
+    soles = foot_sole_heights(grounded, model)
+    assert np.percentile(soles, 5) == pytest.approx(0.1, abs=1e-9)
+    np.testing.assert_allclose(grounded.root_pos[:, :2], motion.root_pos[:, :2])
