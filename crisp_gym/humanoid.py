@@ -72,8 +72,11 @@ MASS_FRACTIONS: dict[str, float] = {
     "L_Shoulder": 0.0271, "L_Elbow": 0.0162, "L_Wrist": 0.0045, "L_Hand": 0.0016,
 }  # fmt: skip
 
-# Ranges in degrees per hinge (x: ab/adduction or lateral bend, y: flexion, z: twist) for the
-# left side; the right side mirrors x and z. Negative y flexes the hip and shoulder forward.
+# Ranges in degrees per hinge for the left side; the right side mirrors x and z. Legs and spine
+# (segments along z): x ab/adduction or lateral bend, y flexion (negative y swings the thigh
+# forward, positive y bends the knee), z twist. Arms (segments along y in the T-pose): x raises
+# or lowers the arm (−90° hangs it at the side), y twists it, z swings it forward (negative,
+# also the elbow's flexion).
 _RANGES_DEG: dict[str, tuple[tuple[float, float], ...]] = {
     "Hip": ((-40, 60), (-140, 40), (-60, 60)),
     "Knee": ((-15, 15), (-10, 160), (-30, 30)),
@@ -85,8 +88,8 @@ _RANGES_DEG: dict[str, tuple[tuple[float, float], ...]] = {
     "Neck": ((-60, 60), (-70, 70), (-80, 80)),
     "Head": ((-50, 50), (-60, 60), (-60, 60)),
     "Thorax": ((-30, 30), (-30, 30), (-30, 30)),
-    "Shoulder": ((-100, 100), (-180, 90), (-120, 120)),
-    "Elbow": ((-30, 30), (-30, 30), (-10, 165)),
+    "Shoulder": ((-140, 140), (-120, 120), (-150, 90)),
+    "Elbow": ((-30, 30), (-90, 90), (-165, 10)),
     "Wrist": ((-90, 90), (-60, 60), (-90, 90)),
     "Hand": ((-50, 50), (-90, 90), (-50, 50)),
 }  # fmt: skip

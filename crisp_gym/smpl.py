@@ -1,0 +1,155 @@
+"""SMPL pose parameters (axis-angle ``global_orient``, ``body_pose``, ``transl``) <-> :class:`Motion`.
+
+SMPL's joints map to our bodies by name (:data:`SMPL_TO_BODY`); its body frame (y up,
+facing +z, x to the body's left) becomes ours (z up, facing +x, left +y) by the fixed
+change of basis :data:`SMPL_TO_OURS` applied to every local rotation (``C R Cᵀ``). Both
+skeletons rest in the same T-pose, so no further rest alignment is needed.
+
+``transl`` is not the pelvis position: SMPL puts the pelvis at ``transl + J0(betas)``, with
+``J0`` the shape-dependent rest pelvis joint (about 0.22 m below the model origin for the
+mean shape). Without the shape we take ``transl`` as the pelvis and then ground the motion
+(feet on z = 0), which removes the vertical part of that constant offset; its horizontal
+part (a few cm for y-up inputs) is left in, shifting the whole path by a constant.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from crisp_gym.humanoid import BODY_NAMES, build_humanoid
+from crisp_gym.motion import Motion, ground, hinge_angles_to_rotations, rotations_to_hinge_angles
+
+SMPL_JOINT_NAMES: tuple[str, ...] = (
+    "Pelvis", "L_Hip", "R_Hip", "Spine1", "L_Knee", "R_Knee", "Spine2", "L_Ankle", "R_Ankle",
+    "Spine3", "L_Foot", "R_Foot", "Neck", "L_Collar", "R_Collar", "Head", "L_Shoulder",
+    "R_Shoulder", "L_Elbow", "R_Elbow", "L_Wrist", "R_Wrist", "L_Hand", "R_Hand",
+)  # fmt: skip
+"""SMPL's 24 joints in its (breadth-first) order; ``body_pose`` holds the last 23."""
+
+_RENAMED = {"Spine1": "Torso", "Spine2": "Spine", "Spine3": "Chest", "L_Foot": "L_Toe", "R_Foot": "R_Toe",
+            "L_Collar": "L_Thorax", "R_Collar": "R_Thorax"}
+SMPL_TO_BODY: dict[str, str] = {j: _RENAMED.get(j, j) for j in SMPL_JOINT_NAMES}
+"""SMPL joint name -> our body name."""
+
+SMPL_TO_OURS = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Rotation taking SMPL body axes (x left, y up, z forward) to ours (x forward, y left, z up)."""
+
+_BODY_INDEX = [SMPL_JOINT_NAMES.index(next(j for j, b in SMPL_TO_BODY.items() if b == body))
+               for body in BODY_NAMES]  # SMPL index of each of our bodies
+
+
+def _world_to_ours(up_axis: str) -> np.ndarray:
+    """Rotation from the input's world axes to ours."""
+    if up_axis == "y":
+        return SMPL_TO_OURS
+    if up_axis == "z":
+        return np.eye(3)
+    raise ValueError(f"up_axis must be 'y' (SMPL's own world) or 'z' (already z-up), got {up_axis!r}")
+
+
+def _read(source: str | Path | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    if isinstance(source, Mapping):
+        return {k: np.asarray(v) for k, v in source.items()}
+    path = Path(source)
+    if not path.is_file():
+        raise FileNotFoundError(f"no SMPL parameter file at {path}")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, EOFError, ValueError) as err:
+        raise ValueError(f"{path} is not a readable npz without pickles ({err}); expected "
+                         "global_orient, body_pose and transl arrays") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path} holds a single array; expected an npz with global_orient, "
+                         "body_pose and transl")
+    with data:
+        return {k: data[k] for k in data.files}
+
+
+def _checked(params: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T,3) global_orient, (T,23,3) body_pose, (T,3) transl, validated."""
+    missing = [k for k in ("global_orient", "body_pose", "transl") if k not in params]
+    if missing:
+        raise ValueError(f"SMPL parameters lack {missing}; expected global_orient (T,3), "
+                         f"body_pose (T,63 or T,69), transl (T,3); got keys {sorted(params)}")
+    try:
+        orient, pose, transl = (np.asarray(params[k], dtype=float)
+                                for k in ("global_orient", "body_pose", "transl"))
+    except (TypeError, ValueError):
+        raise ValueError("SMPL global_orient, body_pose and transl must be numeric arrays") from None
+    t = orient.shape[0] if orient.ndim == 2 else -1
+    if pose.ndim == 3 and pose.shape[2] == 3:
+        pose = pose.reshape(pose.shape[0], -1)
+    for key, arr, widths in (("global_orient", orient, (3,)), ("body_pose", pose, (63, 69)),
+                             ("transl", transl, (3,))):
+        if arr.ndim != 2 or arr.shape[0] != t or arr.shape[1] not in widths:
+            want = " or ".join(f"(T, {w})" for w in widths)
+            raise ValueError(f"SMPL {key} must have shape {want} with T shared by all three, "
+                             f"got {arr.shape} (global_orient is {orient.shape})")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise ValueError(f"SMPL {key} has non-finite values (first at frame {int(np.argwhere(bad)[0, 0])})")
+    if t < 2:
+        raise ValueError(f"a motion needs at least 2 frames, got {t}")
+    if pose.shape[1] == 63:  # SMPL-X / SMPL-H style bodies: no hand joints, keep them at rest
+        pose = np.concatenate([pose, np.zeros((t, 6))], axis=1)
+    return orient, pose.reshape(t, 23, 3), transl
+
+
+def load_smpl_params(source: str | Path | Mapping[str, np.ndarray], *, fps: float | None = None,
+                     up_axis: str = "y", to_floor: bool = True,
+                     model: mujoco.MjModel | None = None) -> Motion:
+    """A humanoid :class:`Motion` from SMPL axis-angle parameters (an npz path or a dict).
+
+    ``fps`` defaults to the source's ``fps`` or ``mocap_framerate`` entry, else 30.
+    ``up_axis="y"`` is SMPL's own world (y up); ``"z"`` means the world is already z-up and
+    only the body frame is converted. ``to_floor`` grounds the result on ``model`` (the default
+    humanoid when ``None``); see the module docstring for how ``transl`` is treated.
+    """
+    params = _read(source)
+    world = _world_to_ours(up_axis)
+    if fps is None:
+        stored = next((params[k] for k in ("fps", "mocap_framerate") if k in params), 30.0)
+        fps = float(np.asarray(stored).reshape(()))
+    orient, pose, transl = _checked(params)
+    t = orient.shape[0]
+    rotvecs = np.concatenate([orient[:, None], pose], axis=1)  # (T, 24, 3) in SMPL order
+    local = Rotation.from_rotvec(rotvecs.reshape(-1, 3)).as_matrix().reshape(t, 24, 3, 3)
+    local = local[:, _BODY_INDEX]  # our body order
+    c = SMPL_TO_OURS
+    root = world @ local[:, 0] @ c.T
+    joints = c @ local[:, 1:] @ c.T
+    motion = Motion(fps=fps, root_pos=transl @ world.T,
+                    root_quat=Rotation.from_matrix(root).as_quat(scalar_first=True),
+                    dof_pos=rotations_to_hinge_angles(joints).reshape(t, -1))
+    if to_floor:
+        motion = ground(motion, model if model is not None else build_humanoid())
+    return motion
+
+
+def save_smpl_params(motion: Motion, path: str | Path) -> Path:
+    """Write ``motion`` as SMPL parameters (y-up world, ``body_pose`` (T, 69)) plus ``fps``.
+
+    ``transl`` is the pelvis position, as :func:`load_smpl_params` reads it. Written atomically.
+    """
+    m = motion.in_humanoid_order()
+    t = m.num_frames
+    c = SMPL_TO_OURS
+    local = np.empty((t, len(BODY_NAMES), 3, 3))
+    local[:, 0] = c.T @ Rotation.from_quat(m.root_quat, scalar_first=True).as_matrix() @ c
+    local[:, 1:] = c.T @ hinge_angles_to_rotations(m.dof_pos.reshape(t, -1, 3)) @ c
+    smpl_order = np.empty_like(local)
+    smpl_order[:, _BODY_INDEX] = local
+    rotvecs = Rotation.from_matrix(smpl_order.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
+                 transl=m.root_pos @ c, fps=np.float64(m.fps))
+    tmp.replace(path)
+    return path
