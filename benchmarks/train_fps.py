@@ -1,0 +1,176 @@
+"""End-to-end PPO training throughput, scene-blind and scene-aware, and where the time goes.
+
+Each variant runs :func:`train.ppo.train` for ``warmup + iterations`` iterations (the warm-up
+ones, which include the normaliser-only first batch, are not counted) and splits the
+wall-clock time of the measured iterations into:
+
+* physics: ``mujoco.batch`` stepping, forward and reset calls;
+* observation: the rest of the env's step (controls, observations, rewards, resets);
+* inference: the policy's forward pass and sampling plus the collector's bookkeeping;
+* update: GAE, the PPO epochs and the normaliser update.
+
+    python benchmarks/train_fps.py                      # CPU profile, MLP and transformer actors
+    python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
+
+Without ``--clip`` (or when the named clip is not installed) a synthetic 3 s walking clip with
+one step box is generated in a temporary directory.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+
+from train.models import ModelConfig
+from train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
+
+
+@dataclass(frozen=True)
+class Args:
+    """Benchmark options.
+
+    Attributes:
+        clip: clip name or directory; empty: a generated synthetic clip.
+        profile: ``cpu`` or ``paper`` defaults for everything not set here.
+        actors: actor architectures to measure.
+        scene: which variants to measure (``blind``, ``aware``).
+        iterations: measured iterations per variant.
+        warmup: iterations run before measuring.
+        num_envs: override the profile's env count (0: keep).
+        steps_per_env: override the profile's roll-out length (0: keep).
+        epochs: override the profile's PPO epochs (0: keep).
+        device: torch device (``auto``: CUDA when available).
+        seed: run seed.
+    """
+
+    clip: str = ""
+    profile: str = "cpu"
+    actors: tuple[str, ...] = ("mlp", "transformer")
+    scene: tuple[str, ...] = ("blind", "aware")
+    iterations: int = 3
+    warmup: int = 2
+    num_envs: int = 0
+    steps_per_env: int = 0
+    epochs: int = 0
+    device: str = "auto"
+    seed: int = 0
+
+
+class _TimedBatch:
+    """Delegates to a ``mujoco.batch.Batch`` and adds up the time of its stepping calls."""
+
+    def __init__(self, batch):
+        self._batch = batch
+        self.seconds = 0.0
+
+    def _timed(self, name: str):
+        method = getattr(self._batch, name)
+
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - start
+        return call
+
+    def __getattr__(self, name: str):
+        if name in ("step", "forward", "reset"):
+            return self._timed(name)
+        return getattr(self._batch, name)
+
+
+def synthetic_clip(directory: Path) -> Path:
+    """A 3 s clip: slow walk with an arm swing and a knee bend, a 0.2 m step box 2 m ahead."""
+    from crisp_gym.clip import write_clip
+    from crisp_gym.humanoid import DOF_NAMES, build_humanoid
+    from crisp_gym.motion import Motion, ground
+    from crisp_gym.scene import Box, floor_box
+
+    frames = 90
+    t = np.arange(frames) / 30.0
+    dof = np.zeros((frames, len(DOF_NAMES)))
+    dof[:, DOF_NAMES.index("L_Shoulder_x")] = -1.2 + 0.3 * np.sin(2 * t)
+    dof[:, DOF_NAMES.index("R_Shoulder_x")] = 1.2
+    dof[:, DOF_NAMES.index("L_Knee_y")] = 0.2 * (1 - np.cos(2 * t))
+    dof[:, DOF_NAMES.index("L_Hip_y")] = -0.1 * (1 - np.cos(2 * t))
+    motion = Motion(fps=30, root_pos=np.c_[0.2 * t, np.zeros(frames), np.ones(frames)],
+                    root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)
+    motion = ground(motion, build_humanoid())
+    write_clip(directory, [floor_box(), Box(center=[2.0, 0.0, 0.1], half_size=[0.3, 0.5, 0.1])], motion,
+               {"source": "synthetic benchmark clip"})
+    return directory
+
+
+def _resolve_clip(name: str, tmp: Path) -> str:
+    if name:
+        from crisp_gym.registry import resolve_clip
+        try:
+            resolve_clip(name)
+            return name
+        except (FileNotFoundError, KeyError, ValueError):
+            print(f"clip {name!r} is not installed; using a synthetic clip")
+    return str(synthetic_clip(tmp / "synthetic"))
+
+
+def measure(cfg: TrainConfig, warmup: int) -> dict[str, float]:
+    """Run ``cfg`` and return FPS and time shares over its iterations after ``warmup``."""
+    batches: list[_TimedBatch] = []
+
+    def env_fn(config: TrainConfig, seed: int):
+        env = make_env(config, seed)
+        env.vec_env.batch = _TimedBatch(env.vec_env.batch)
+        batches.append(env.vec_env.batch)
+        return env
+
+    result = train(cfg, env_fn=env_fn)
+    rows = result.history[warmup:]
+    if not rows:
+        raise ValueError("no measured iterations: raise --iterations")
+    collect = sum(r["collect_s"] for r in rows)
+    env_s = sum(r["env_s"] for r in rows)
+    update = sum(r["update_s"] for r in rows)
+    # physics is only known in total: apportion it to the measured iterations by env time
+    total_env = sum(r["env_s"] for r in result.history)
+    physics = batches[0].seconds * env_s / total_env
+    total = collect + update
+    frames = sum(cfg.frames_per_iteration for _ in rows)
+    return {"fps": frames / total, "physics": physics / total, "observation": (env_s - physics) / total,
+            "inference": (collect - env_s) / total, "update": update / total, "iteration_s": total / len(rows)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = tyro.cli(Args, args=argv)
+    base = {"cpu": cpu_profile, "paper": paper_profile}[args.profile]()
+    overrides = {k: v for k, v in (("num_envs", args.num_envs), ("steps_per_env", args.steps_per_env),
+                                   ("epochs", args.epochs)) if v}
+    print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, profile: {args.profile}")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        clip = _resolve_clip(args.clip, Path(tmp))
+        for actor in args.actors:
+            for scene in args.scene:
+                cfg = replace(base, clip=clip, output=Path(tmp) / f"{actor}-{scene}", scene_aware=scene == "aware",
+                              model=replace(base.model, actor=actor), device=args.device, seed=args.seed,
+                              progress=False, checkpoint_every=10**9, **overrides)
+                cfg = replace(cfg, frames=(args.warmup + args.iterations) * cfg.frames_per_iteration)
+                stats = measure(cfg, args.warmup)
+                rows.append((scene, actor, cfg, stats))
+                print(f"  {scene:5s} {actor:11s} {stats['fps']:8.0f} frames/s", flush=True)
+    print()
+    print("| variant | actor | envs × steps | epochs | FPS | physics | observation | inference | update |")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|")
+    for scene, actor, cfg, s in rows:
+        print(f"| scene-{scene} | {actor} | {cfg.num_envs} × {cfg.steps_per_env} | {cfg.epochs} | {s['fps']:.0f} | "
+              f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,260 @@
+"""The diagnosis: where the gap lies, which effect explains it, how far it shrinks.
+
+Every candidate effect (and the best pairs) is fitted on training windows and ranked by
+the gap it leaves on held-out windows (other logs, or the last part of each log), with a
+penalty per parameter so that a richer model must earn its keep. The verdict compares
+gaps with the *noise floor*: the gap this same pipeline measures on a log that the model
+itself produced, with the log's own measurement noise. A log whose gap is at the floor
+gets "none"; a gap that no effect brings near the floor is "unexplained".
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import mujoco
+import numpy as np
+from tqdm import tqdm
+
+from crisp_gym.sim2real.effects import Effect, library
+from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
+from crisp_gym.sim2real.gap import where
+from crisp_gym.sim2real.log import RealLog
+from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, nominal_inputs
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Settings of :func:`diagnose`.
+
+    Attributes:
+        window_s: replay window length (s); long enough to see the dynamics (a few PD
+            time constants), short enough that errors do not compound.
+        holdout_fraction: without held-out logs, the last fraction of every log is held out.
+        pairs: how many of the best single effects are also fitted pairwise.
+        penalty: per extra parameter, the relative increase of the squared held-out gap a
+            candidate is charged in the ranking.
+        none_factor: a held-out gap below ``none_factor`` x the noise floor means "none".
+        explained_factor: the winner explains the gap if it leaves at most this x the floor.
+        max_iter: Levenberg-Marquardt iterations per fit.
+        nthread: rollout threads.
+        seed: seed of the noise-floor synthesis.
+        families: restrict the library to these effect families (empty: all).
+        tolerance: a candidate with fewer parameters replaces the best one when their
+            squared held-out gaps differ by less than ``tolerance`` x the squared floor:
+            below the noise, a richer model has not earned its parameters.
+        show_progress: tqdm progress over the fits.
+    """
+
+    window_s: float = 0.5
+    holdout_fraction: float = 0.3
+    pairs: int = 3
+    penalty: float = 0.02
+    none_factor: float = 1.5
+    explained_factor: float = 1.6
+    max_iter: int = 8
+    nthread: int = 2
+    seed: int = 0
+    families: tuple[str, ...] = ()
+    tolerance: float = 1.0
+    show_progress: bool = True
+
+
+@dataclass
+class Candidate:
+    combo: Combo
+    x: np.ndarray
+    train_gap: float
+    heldout_gap: float = float("nan")
+    score: float = float("nan")
+
+    @property
+    def nparam(self) -> int:
+        return len(self.x)
+
+
+def _split(pairs: list[tuple[RealLog, mujoco.MjModel]], fraction: float):
+    train, test = [], []
+    for log, model in pairs:
+        a, b = log.split(1.0 - fraction)
+        train.append((a, model))
+        test.append((b, model))
+    return train, test
+
+
+def noise_floor(rep: Replayer, seed: int) -> tuple[np.ndarray, list[Trajectory]]:
+    """Per-joint windowed gap on logs synthesised by the nominal model from the same
+    commands and initial states, with each log's estimated measurement noise added."""
+    rng = np.random.default_rng(seed)
+    synth = rep.open_loop(nominal_inputs(rep.trajs))
+    trajs = []
+    for tr, q in zip(rep.trajs, synth):
+        noisy = q + rng.normal(0.0, 1.0, q.shape) * tr.sigma[None]
+        trajs.append(bind(replace(tr.log, qpos=noisy, qvel=None), tr.model, validate=False))
+    srep = Replayer(trajs, rep.windows, len(rep._datas))
+    r = residuals(srep, [nominal_inputs(trajs)])[0]
+    return np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum()), trajs
+
+
+def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[RealLog, mujoco.MjModel]] | None = None,
+             config: DiagnoseConfig | None = None) -> dict:
+    """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on).
+
+    Returns the machine-readable report (see ``docs/sim2real.md`` for every key).
+    """
+    cfg = config or DiagnoseConfig()
+    t_start = time.perf_counter()
+    if not train:
+        raise ValueError("diagnose needs at least one log")
+    split = holdout is None or not holdout
+    if split:
+        train, holdout = _split(train, cfg.holdout_fraction)
+    tr_train = [bind(log, model) for log, model in train]
+    tr_test = [bind(log, model) for log, model in holdout]
+    rep_train = Replayer(tr_train, make_windows(tr_train, cfg.window_s), cfg.nthread)
+    rep_test = Replayer(tr_test, make_windows(tr_test, cfg.window_s), cfg.nthread)
+    names = tr_train[0].log.joint_names
+
+    r0_test = residuals(rep_test, [nominal_inputs(tr_test)])[0]
+    r0_train = residuals(rep_train, [nominal_inputs(tr_train)])[0]
+    gap_before = gap_rms(r0_test, rep_test.mask)
+    floor_j, _ = noise_floor(rep_test, cfg.seed)
+    floor = float(np.sqrt(np.mean(floor_j**2)))
+
+    rep_all = Replayer(tr_train + tr_test, _concat_windows(rep_train, rep_test), cfg.nthread)
+    r0_all = np.concatenate([r0_train, r0_test])
+    where_before = where(rep_all, r0_all, rep_all.open_loop(nominal_inputs(rep_all.trajs)), floor_j)
+    train_rms = np.sqrt(np.sum(r0_train**2, axis=(0, 1)) / rep_train.mask.sum())
+    focus = names[int(np.argmax(train_rms**2 - floor_j**2))]
+
+    fitter = Fitter(rep_train, cfg.max_iter)
+    effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
+    candidates: list[Candidate] = []
+    for effect in tqdm(effects, desc="fit effects", disable=not cfg.show_progress, leave=False):
+        candidates.append(_fit(fitter, Combo((effect,), tr_train[0])))
+    _evaluate(rep_test, candidates)
+    pair_cands = _pairs(candidates, cfg.pairs, tr_train[0], fitter, cfg)
+    _evaluate(rep_test, pair_cands)
+    candidates += pair_cands
+    for c in candidates:
+        c.score = c.heldout_gap**2 * (1 + cfg.penalty * c.nparam)
+    ranked = _parsimonious_first(sorted(candidates, key=lambda c: c.score), floor, cfg.tolerance)
+
+    verdict, selected = _verdict(ranked, gap_before, floor, cfg)
+    result: dict = {
+        "verdict": verdict,
+        "joints": list(names),
+        "gap_before": gap_before,
+        "noise_floor": floor,
+        "noise_sigma": {n: float(s) for n, s in zip(names, tr_train[0].sigma)},
+        "where": where_before,
+        "ranking": [_row(c, gap_before, floor) for c in ranked],
+        "heldout": "time split" if split else "held-out logs",
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
+    }
+    best = ranked[0]
+    runner = next((c for c in ranked[1:] if c.combo.family != best.combo.family), None)
+    chosen = selected or best
+    ci = fitter.confidence(chosen.combo, chosen.x)
+    r_after = residuals(rep_test, [chosen.combo.inputs(chosen.x, tr_test)])[0]
+    per_joint_after = np.sqrt(np.sum(r_after**2, axis=(0, 1)) / rep_test.mask.sum())
+    summary = {
+        "effect": chosen.combo.label, "family": chosen.combo.family,
+        "parameters": [{"name": p.name, "value": float(v), "ci95": [float(v - h), float(v + h)], "unit": p.unit,
+                        "effect": e.label}
+                       for (p, v, h, e) in zip(chosen.combo.params, chosen.x, ci, _owners(chosen.combo))],
+        "gap_train": chosen.train_gap, "gap_heldout": chosen.heldout_gap,
+        "margin_over_runner_up": (None if runner is None else float(runner.score / chosen.score - 1.0)),
+        "runner_up": None if runner is None else runner.combo.label,
+        "per_joint_gap_after": {n: float(g) for n, g in zip(names, per_joint_after)},
+    }
+    result["selected"] = summary if selected is not None else None
+    result["closest"] = summary if selected is None else None
+    result["gap_after_heldout"] = chosen.heldout_gap if selected is not None else gap_before
+    result["shrink"] = 1.0 - result["gap_after_heldout"] / gap_before if gap_before > 0 else 0.0
+    excess0 = gap_before**2 - floor**2
+    result["shrink_above_floor"] = (float(1 - max(result["gap_after_heldout"]**2 - floor**2, 0) / excess0)
+                                    if excess0 > 0 else 0.0)
+    target = rep_test.targets(nominal_inputs(tr_test))
+    result["_replay"] = {"windows": rep_test.windows, "dt": tr_test[0].log.dt, "mask": rep_test.mask,
+                         "target": target, "pred_before": target + r0_test,
+                         "pred_after": target + r_after,
+                         "sources": [t.log.meta.get("source", f"log{i}") for i, t in enumerate(tr_test)]}
+    result["rollouts"] = fitter.rollouts
+    result["seconds"] = time.perf_counter() - t_start
+    return result
+
+
+def _owners(combo: Combo) -> list[Effect]:
+    return [e for e, n in zip(combo.effects, combo.sizes) for _ in range(n)]
+
+
+def _concat_windows(a: Replayer, b: Replayer):
+    wa, wb = a.windows, b.windows
+    if wa.size != wb.size:
+        raise ValueError("train and held-out windows must have the same length")
+    return type(wa)(np.concatenate([wa.traj, wb.traj + len(a.trajs)]), np.concatenate([wa.start, wb.start]),
+                    np.concatenate([wa.length, wb.length]), wa.pattern + wb.pattern, wa.size)
+
+
+def _fit(fitter: Fitter, combo: Combo, starts: list[np.ndarray] | None = None) -> Candidate:
+    res = fitter.fit(combo, starts)
+    return Candidate(combo, res.x, res.train_gap)
+
+
+def _evaluate(rep: Replayer, cands: list[Candidate]) -> None:
+    """Held-out gap of each candidate, in batches that keep memory bounded."""
+    batch = max(1, int(4e7 // max(1, len(rep.windows) * rep.nstep * (rep.trajs[0].model.nq * 2 + 1) * 8)))
+    for i in range(0, len(cands), batch):
+        chunk = cands[i:i + batch]
+        r = residuals(rep, [c.combo.inputs(c.x, rep.trajs) for c in chunk])
+        for c, rc in zip(chunk, r):
+            c.heldout_gap = gap_rms(rc, rep.mask)
+
+
+def _pairs(cands: list[Candidate], k: int, ref: Trajectory, fitter: Fitter, cfg: DiagnoseConfig) -> list[Candidate]:
+    """Fit the pairs among the ``k`` best single effects of distinct families."""
+    best: list[Candidate] = []
+    for c in sorted(cands, key=lambda c: c.heldout_gap):
+        if all(c.combo.family != b.combo.family for b in best):
+            best.append(c)
+        if len(best) == 3:
+            break
+    out = []
+    pairs = [(a, b) for i, a in enumerate(best) for b in best[i + 1:]][:k]
+    for a, b in tqdm(pairs, desc="fit pairs", disable=not cfg.show_progress, leave=False):
+        combo = Combo(a.combo.effects + b.combo.effects, ref)
+        out.append(_fit(fitter, combo, [np.concatenate([a.x, b.x])]))
+    return out
+
+
+def _parsimonious_first(ranked: list[Candidate], floor: float, tolerance: float) -> list[Candidate]:
+    """Move the simplest candidate indistinguishable from the best (at the noise level)
+    to the front."""
+    best = ranked[0]
+    while True:
+        simpler = [c for c in ranked if c.nparam < best.nparam
+                   and c.heldout_gap**2 <= best.heldout_gap**2 + tolerance * floor**2]
+        if not simpler:
+            break
+        best = min(simpler, key=lambda c: c.score)
+    return [best] + [c for c in ranked if c is not best]
+
+
+def _verdict(ranked: list[Candidate], gap_before: float, floor: float,
+             cfg: DiagnoseConfig) -> tuple[str, Candidate | None]:
+    if gap_before <= cfg.none_factor * floor:
+        return "none", None
+    best = ranked[0]
+    if best.heldout_gap <= cfg.explained_factor * floor and best.heldout_gap < gap_before:
+        return "explained", best
+    return "unexplained", None
+
+
+def _row(c: Candidate, gap_before: float, floor: float) -> dict:
+    return {"effect": c.combo.label, "family": c.combo.family, "nparam": c.nparam,
+            "parameters": {p.name: float(v) for p, v in zip(c.combo.params, c.x)},
+            "gap_train": c.train_gap, "gap_heldout": c.heldout_gap, "score": c.score,
+            "shrink": 1.0 - c.heldout_gap / gap_before if gap_before > 0 else 0.0,
+            "gap_over_floor": c.heldout_gap / floor if floor > 0 else float("inf")}

@@ -1,0 +1,179 @@
+"""The three bundled models the gap tool is checked on, composed or adapted with MjSpec.
+
+* a single Dynamixel XL330 servo swinging a pendulum (the real ``bam_xl330`` logs);
+* the Unitree Go2 with its base fixed in the air (the real ``go2_fixed_base`` log);
+* the crisp humanoid with its pelvis fixed above a floor, legs touching it (blind bench).
+
+All use MuJoCo position actuators, so that ``ctrl`` is the commanded joint angle and the
+PD loop runs inside the integrator, as it does on the servo's or the robot's own board.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+# XL330 electrical model: the firmware turns kp units and a position error into a PWM duty
+# cycle, duty * vin drives a DC motor (torque kt*i, back-EMF kt*w, resistance R). The duty
+# per radian and per kp unit follows from the 4096-count encoder, the kp divisor the
+# firmware applies (256, measured on this servo class) and the 885-count PWM scale.
+XL330_ENCODER_COUNTS = 4096
+XL330_KP_DIVISOR = 256.0
+XL330_PWM_SCALE = 885.0
+SERVO_JOINT = "servo"
+SERVO_ACTUATOR = "servo"
+
+
+@dataclass(frozen=True)
+class ServoConfig:
+    """Parameters of the servo-pendulum model.
+
+    Attributes:
+        mass: pendulum mass (kg), a point mass at ``length`` below the axis.
+        length: lever (m).
+        kp: the Dynamixel's firmware position gain (its own units).
+        vin: supply voltage (V).
+        kt: motor torque constant after the gearbox (N·m/A), also the back-EMF constant.
+        resistance: winding resistance (ohm).
+        armature: reflected rotor inertia (kg·m²).
+        timestep: physics step (s); the replay subdivides the log period to match it.
+    Defaults are the electrical constants published for this servo class by the BAM
+    actuator study (Duclusaud et al., 2025); friction is deliberately absent: it is what
+    the gap tool is asked to find.
+    """
+
+    mass: float = 0.49
+    length: float = 0.1
+    kp: float = 400.0
+    vin: float = 7.4
+    kt: float = 0.346
+    resistance: float = 2.50
+    armature: float = 0.00157
+    timestep: float = 0.0025
+
+    @property
+    def duty_per_rad(self) -> float:
+        return self.kp * XL330_ENCODER_COUNTS / (2 * np.pi) / (XL330_KP_DIVISOR * XL330_PWM_SCALE)
+
+    @property
+    def stiffness(self) -> float:
+        """PD stiffness in N·m/rad: torque per radian of error below saturation."""
+        return self.kt / self.resistance * self.vin * self.duty_per_rad
+
+    @property
+    def back_emf_damping(self) -> float:
+        return self.kt**2 / self.resistance
+
+    @property
+    def torque_limit(self) -> float:
+        """Stall torque at full duty cycle."""
+        return self.kt / self.resistance * self.vin
+
+
+def build_servo_pendulum_spec(config: ServoConfig | None = None) -> mujoco.MjSpec:
+    """One hinge (angle 0 = hanging down), a point mass, a position servo named ``servo``."""
+    cfg = config or ServoConfig()
+    spec = mujoco.MjSpec()
+    spec.modelname = "servo_pendulum"
+    spec.option.timestep = cfg.timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    body = spec.worldbody.add_body(name="pendulum")
+    body.add_joint(name=SERVO_JOINT, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0], armature=cfg.armature)
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.02, 0, 0], pos=[0, 0, -cfg.length], mass=cfg.mass,
+                  contype=0, conaffinity=0)
+    act = spec.add_actuator(name=SERVO_ACTUATOR, target=SERVO_JOINT, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    act.set_to_position(kp=cfg.stiffness, kv=cfg.back_emf_damping)
+    act.forcelimited = True
+    act.forcerange = (-cfg.torque_limit, cfg.torque_limit)
+    act.ctrllimited = False
+    return spec
+
+
+def build_servo_pendulum(config: ServoConfig | None = None) -> mujoco.MjModel:
+    return build_servo_pendulum_spec(config).compile()
+
+
+GO2_JOINTS: tuple[str, ...] = tuple(f"{leg}_{part}_joint" for leg in ("FL", "FR", "RL", "RR")
+                                    for part in ("hip", "thigh", "calf"))
+GO2_KP = 20.0
+GO2_KD = 1.5
+
+
+def load_go2_fixed_base_spec(xml: str | Path, kp: float = GO2_KP, kd: float = GO2_KD) -> mujoco.MjSpec:
+    """The Go2 MJCF with the free joint removed (base welded where it is) and its torque
+    motors turned into PD position actuators with the gains the log was recorded with;
+    torque limits stay the motors' ctrlrange."""
+    xml = Path(xml)
+    if not xml.is_file():
+        raise FileNotFoundError(f"Go2 model not found: {xml}")
+    spec = mujoco.MjSpec.from_file(str(xml))
+    for body in spec.bodies:
+        for joint in list(body.joints):
+            if joint.type == mujoco.mjtJoint.mjJNT_FREE:
+                spec.delete(joint)
+                # Welded to the world, the base would collide with its own children: MuJoCo
+                # filters parent-child contacts only for bodies that can move.
+                for child in body.bodies:
+                    spec.add_exclude(bodyname1=body.name, bodyname2=child.name)
+    for key in list(spec.keys):  # keyframes are sized for the floating base
+        spec.delete(key)
+    model = spec.compile()  # resolves default classes, so the motors' limits are readable
+    for i, act in enumerate(spec.actuators):
+        limit = float(np.max(np.abs(model.actuator_ctrlrange[i])))
+        act.set_to_position(kp=kp, kv=kd)
+        act.ctrllimited = False
+        act.forcelimited = True
+        act.forcerange = (-limit, limit)
+    return spec
+
+
+def load_go2_fixed_base(xml: str | Path, kp: float = GO2_KP, kd: float = GO2_KD) -> mujoco.MjModel:
+    return load_go2_fixed_base_spec(xml, kp, kd).compile()
+
+
+HUMANOID_BENCH_JOINTS: tuple[str, ...] = ("L_Hip_y", "L_Knee_y", "L_Ankle_y", "R_Hip_y", "R_Knee_y", "R_Ankle_y")
+FLOOR_GEOM = "floor"
+
+
+def build_humanoid_bench_spec(penetration: float = 0.005) -> mujoco.MjSpec:
+    """The humanoid with its pelvis welded in place and a floor whose top is
+    ``penetration`` above the lowest foot point at rest, so that the feet touch it.
+
+    A fixed pelvis keeps the contact cases (ground friction, softness, height, a missing
+    box) while making every replay window well posed without the root state.
+    """
+    from crisp_gym.humanoid import ROOT_JOINT, HumanoidConfig, build_humanoid_spec
+
+    spec = build_humanoid_spec(HumanoidConfig(arena_memory=2 * 1024 * 1024))
+    spec.delete(spec.joint(ROOT_JOINT))
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    colliding = [g for g in range(model.ngeom) if model.geom_contype[g] or model.geom_conaffinity[g]]
+    low = min(_lowest_point(model, data, g) for g in colliding)
+    top = low + penetration
+    spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[2.0, 2.0, 0.05],
+                            pos=[0, 0, top - 0.05], contype=1, conaffinity=2, friction=[1.0, 0.005, 0.0001])
+    return spec
+
+
+def _lowest_point(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
+    """Lowest world z of a sphere/capsule/box geom (others: centre minus bounding radius)."""
+    size = model.geom_size[g]
+    pos = data.geom_xpos[g]
+    mat = data.geom_xmat[g].reshape(3, 3)
+    kind = model.geom_type[g]
+    if kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+        return pos[2] - size[0]
+    if kind == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        return pos[2] - abs(mat[2, 2]) * size[1] - size[0]
+    if kind == mujoco.mjtGeom.mjGEOM_BOX:
+        return pos[2] - float(np.abs(mat[2, :]) @ size)
+    return pos[2] - model.geom_rbound[g]
+
+
+def build_humanoid_bench() -> mujoco.MjModel:
+    return build_humanoid_bench_spec().compile()

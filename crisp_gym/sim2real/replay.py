@@ -1,0 +1,257 @@
+"""Replay logged commands in simulation, in short windows re-synchronised to the log.
+
+Each window starts from the logged state and is driven by the logged commands, so a
+model error shows up as a local discrepancy instead of compounding over the whole log.
+Every window of every candidate model runs in one :func:`mujoco.rollout.rollout` call
+(one C call, threads, no Python per step), which is what makes fitting fast.
+
+Time bases: the log has period ``dt``; the model steps ``nsub`` times per log sample
+(``timestep = dt / nsub``). Commands live on that fine grid (sample-and-hold of the log),
+so that signal effects such as a delay can shift them by fractions of a sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+from mujoco import rollout
+from scipy.signal import savgol_coeffs, savgol_filter
+
+from crisp_gym.sim2real.log import RealLog, validate_against_model
+
+_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+def smooth_derivative(q: np.ndarray, dt: float, window: int = 7) -> np.ndarray:
+    """Velocity from positions by a quadratic Savitzky-Golay fit (robust to quantisation)."""
+    window = min(window, len(q) - (1 - len(q) % 2))
+    return savgol_filter(q, window, 2, deriv=1, delta=dt, axis=0, mode="interp")
+
+
+def noise_sigma(q: np.ndarray, window: int = 9) -> np.ndarray:
+    """Per-column measurement noise: the std of what a cubic Savitzky-Golay smoother
+    removes, corrected for the share of the noise the smoother keeps (its centre weight)."""
+    h0 = savgol_coeffs(window, 3)[window // 2]
+    resid = q - savgol_filter(q, window, 3, axis=0, mode="interp")
+    return np.std(resid, axis=0) / np.sqrt(1.0 - h0)
+
+
+@dataclass
+class Trajectory:
+    """A log bound to the model it is replayed on.
+
+    ``ctrl`` is the full actuator command on the fine grid, (T * nsub, nu): actuators
+    absent from the log keep command 0. ``enabled`` (T, nu) marks powered actuators.
+    """
+
+    log: RealLog
+    model: mujoco.MjModel
+    nsub: int
+    qadr: np.ndarray
+    dadr: np.ndarray
+    act: np.ndarray
+    ctrl: np.ndarray
+    enabled: np.ndarray
+    qvel: np.ndarray
+    sigma: np.ndarray
+    _variants: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def fine_time(self) -> np.ndarray:
+        h = self.log.dt / self.nsub
+        return self.log.time[0] + h * np.arange(len(self.log.time) * self.nsub)
+
+    def model_for(self, base: mujoco.MjModel, pattern: tuple[bool, ...]) -> mujoco.MjModel:
+        """``base`` with the actuators that ``pattern`` marks off exerting no force."""
+        if all(pattern):
+            return base
+        key = (id(base), pattern)
+        if key not in self._variants:
+            off = base.__copy__()
+            for a, on in enumerate(pattern):
+                if not on:
+                    off.actuator_gainprm[a] = 0.0
+                    off.actuator_biasprm[a] = 0.0
+            self._variants[key] = (base, off)  # keep base alive so its id stays unique
+        return self._variants[key][1]
+
+
+def bind(log: RealLog, model: mujoco.MjModel, validate: bool = True) -> Trajectory:
+    """Validate ``log`` against ``model`` (unless it was synthesised from the model
+    itself) and prepare it for replay."""
+    if validate:
+        validate_against_model(log, model)
+    model = model.__copy__()
+    dt = log.dt
+    nsub = max(1, int(np.ceil(dt / model.opt.timestep - 1e-6)))
+    model.opt.timestep = dt / nsub
+    qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in log.joint_names], dtype=int)
+    dadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in log.joint_names], dtype=int)
+    act = np.array([model.actuator(n).id for n in log.actuator_names], dtype=int)
+    t = len(log.time)
+    ctrl = np.zeros((t, model.nu))
+    ctrl[:, act] = log.ctrl
+    enabled = np.ones((t, model.nu), dtype=bool)
+    if log.ctrl_enabled is not None:
+        enabled[:, act] = log.ctrl_enabled
+    qvel = log.qvel if log.qvel is not None else smooth_derivative(log.qpos, dt)
+    return Trajectory(log=log, model=model, nsub=nsub, qadr=qadr, dadr=dadr, act=act,
+                      ctrl=np.repeat(ctrl, nsub, axis=0), enabled=enabled, qvel=qvel, sigma=noise_sigma(log.qpos))
+
+
+@dataclass(frozen=True)
+class Windows:
+    """Replay windows: trajectory index, first sample, sample count (incl. the initial
+    state) and the enabled-actuator pattern, which is constant inside a window."""
+
+    traj: np.ndarray
+    start: np.ndarray
+    length: np.ndarray
+    pattern: tuple[tuple[bool, ...], ...]
+    size: int
+
+    def __len__(self) -> int:
+        return len(self.traj)
+
+    def subset(self, keep: np.ndarray) -> Windows:
+        """The windows selected by ``keep`` (indices or a boolean mask)."""
+        idx = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep, dtype=int)
+        return Windows(self.traj[idx], self.start[idx], self.length[idx],
+                       tuple(self.pattern[i] for i in idx), self.size)
+
+    def mask(self) -> np.ndarray:
+        """(nwin, size - 1) True where a predicted sample lies inside its window."""
+        return np.arange(1, self.size)[None, :] < self.length[:, None]
+
+
+def make_windows(trajs: list[Trajectory], window_s: float, stride_s: float | None = None) -> Windows:
+    """Tile every trajectory with windows of ``window_s`` seconds (``stride_s`` apart,
+    default: back to back), cut where an actuator switches on or off."""
+    if window_s <= 0:
+        raise ValueError(f"window length must be positive, got {window_s}")
+    dt = trajs[0].log.dt
+    size = max(3, int(round(window_s / dt)) + 1)
+    stride = max(1, int(round((stride_s or window_s) / dt)))
+    rows: list[tuple[int, int, int, tuple[bool, ...]]] = []
+    for ti, tr in enumerate(trajs):
+        en = tr.enabled
+        cuts = np.flatnonzero(np.any(en[1:] != en[:-1], axis=1)) + 1
+        bounds = np.concatenate([[0], cuts, [len(en)]])
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            pattern = tuple(bool(x) for x in en[a])
+            s = a
+            while s + max(3, size // 2) <= b:
+                rows.append((ti, s, min(size, b - s), pattern))
+                s += stride
+    if not rows:
+        raise ValueError(f"no replay window of {window_s} s fits in the logs; use a shorter window")
+    traj, start, length, pattern = zip(*rows)
+    return Windows(np.array(traj), np.array(start), np.array(length), tuple(pattern), size)
+
+
+@dataclass
+class SimInputs:
+    """What one candidate model feeds the replay, per trajectory: the models (before
+    switching actuators off), fine-grid commands, and the log seen in the model's frame
+    (the initial states and the targets, after measurement effects are undone)."""
+
+    models: list[mujoco.MjModel]
+    ctrl: list[np.ndarray]
+    qpos: list[np.ndarray]
+    qvel: list[np.ndarray]
+
+
+def nominal_inputs(trajs: list[Trajectory]) -> SimInputs:
+    return SimInputs([t.model for t in trajs], [t.ctrl for t in trajs], [t.log.qpos for t in trajs],
+                     [t.qvel for t in trajs])
+
+
+class Replayer:
+    """Runs windows of many candidates in one batched rollout."""
+
+    def __init__(self, trajs: list[Trajectory], windows: Windows, nthread: int = 2) -> None:
+        names = trajs[0].log.joint_names
+        for t in trajs[1:]:
+            if t.log.joint_names != names or abs(t.log.dt - trajs[0].log.dt) > 1e-6 * trajs[0].log.dt:
+                raise ValueError("all logs of one diagnosis must log the same joints at the same rate")
+        self.trajs, self.windows = trajs, windows
+        m0 = trajs[0].model
+        self.nsub = trajs[0].nsub
+        self.nstep = (windows.size - 1) * self.nsub
+        self._datas = [mujoco.MjData(m0) for _ in range(max(1, nthread))]
+        self._template = np.zeros(mujoco.mj_stateSize(m0, _STATE))
+        data = mujoco.MjData(m0)
+        mujoco.mj_getState(m0, data, self._template, _STATE)
+        self._qadr, self._dadr = trajs[0].qadr, trajs[0].dadr
+        self.mask = windows.mask()
+        offsets = np.arange(windows.size)
+        self._idx = [np.minimum(windows.start[:, None] + offsets[None], len(t.log.time) - 1) for t in trajs]
+
+    def targets(self, inputs: SimInputs) -> np.ndarray:
+        """(nwin, size - 1, n) the logged positions each window is compared with."""
+        w = self.windows
+        out = np.empty((len(w), w.size - 1, len(self._qadr)))
+        for ti in range(len(self.trajs)):
+            sel = w.traj == ti
+            out[sel] = inputs.qpos[ti][self._idx[ti][sel, 1:]]
+        return out
+
+    def simulate(self, candidates: list[SimInputs]) -> np.ndarray:
+        """Predicted positions (ncand, nwin, size - 1, n) of the logged joints."""
+        w = self.windows
+        nw, nc = len(w), len(candidates)
+        nq1 = 1 + self.trajs[0].model.nq
+        init = np.tile(self._template, (nc * nw, 1))
+        ctrl = np.empty((nc * nw, self.nstep, self.trajs[0].model.nu))
+        models: list[mujoco.MjModel] = [None] * (nc * nw)  # type: ignore[list-item]
+        fine = np.arange(self.nstep)
+        for c, inp in enumerate(candidates):
+            rows = slice(c * nw, (c + 1) * nw)
+            for ti, tr in enumerate(self.trajs):
+                sel = np.flatnonzero(w.traj == ti)
+                if not len(sel):
+                    continue
+                s0 = w.start[sel]
+                block = init[rows][sel]
+                block[:, 0] = tr.log.time[s0]
+                block[:, 1 + self._qadr] = inp.qpos[ti][s0]
+                block[:, nq1 + self._dadr] = inp.qvel[ti][s0]
+                init[c * nw + sel] = block
+                fidx = np.minimum(s0[:, None] * self.nsub + fine[None], len(inp.ctrl[ti]) - 1)
+                ctrl[c * nw + sel] = inp.ctrl[ti][fidx]
+                for k in sel:
+                    models[c * nw + k] = tr.model_for(inp.models[ti], w.pattern[k])
+        states, _ = rollout.rollout(models, self._datas, init, ctrl, persistent_pool=True)
+        q = states[:, self.nsub - 1::self.nsub, 1:nq1][:, :, self._qadr]
+        return q.reshape(nc, nw, w.size - 1, -1)
+
+    def open_loop(self, inputs: SimInputs) -> list[np.ndarray]:
+        """Each trajectory simulated from its first logged state to its end without
+        re-synchronising (segments chained where actuators switch): (T, n) per log.
+
+        Used to synthesise logs (benchmark, noise floor) and for frequency responses."""
+        out = []
+        for ti, tr in enumerate(self.trajs):
+            t_len = len(tr.log.time)
+            q = np.empty((t_len, len(self._qadr)))
+            q[0] = inputs.qpos[ti][0]
+            state = self._template.copy()
+            nq1 = 1 + tr.model.nq
+            state[1 + self._qadr] = inputs.qpos[ti][0]
+            state[nq1 + self._dadr] = inputs.qvel[ti][0]
+            en = tr.enabled
+            cuts = np.flatnonzero(np.any(en[1:] != en[:-1], axis=1)) + 1
+            bounds = np.concatenate([[0], cuts, [t_len]])
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                n_samples = b - a if b < t_len else b - a - 1
+                if n_samples <= 0:
+                    continue
+                model = tr.model_for(inputs.models[ti], tuple(bool(x) for x in en[a]))
+                u = inputs.ctrl[ti][a * self.nsub:(a + n_samples) * self.nsub][None]
+                states, _ = rollout.rollout(model, self._datas[0], state[None], u)
+                q[a + 1:a + 1 + n_samples] = states[0, self.nsub - 1::self.nsub][:, 1 + self._qadr]
+                state = states[0, -1]
+            out.append(q)
+        return out

@@ -1,0 +1,170 @@
+"""Write a diagnosis as ``report.json`` (machine-readable) and ``report.md`` with plots.
+
+Everything is written into a temporary folder beside the target and renamed into place,
+so an interrupted run never leaves a half-written report.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
+
+
+def to_json(result: dict) -> dict:
+    """The serialisable part of a diagnosis (drops the replay arrays kept for plots)."""
+    return {k: v for k, v in result.items() if not k.startswith("_")}
+
+
+def write_report(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
+    """Write ``report.json``, ``report.md`` and PNG plots into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        (tmp / "report.json").write_text(json.dumps(to_json(result), indent=1, default=_jsonable))
+        figures = _plots(result, tmp) if plots and "_replay" in result else []
+        (tmp / "report.md").write_text(_markdown(result, figures))
+        if out_dir.exists():
+            for f in tmp.iterdir():
+                f.replace(out_dir / f.name)
+            tmp.rmdir()
+        else:
+            tmp.rename(out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not serialisable: {type(x)}")
+
+
+def _fmt(x: float | None, digits: int = 4) -> str:
+    return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _markdown(result: dict, figures: list[str]) -> str:
+    sel = result.get("selected") or result.get("closest")
+    lines = ["# Sim-to-real gap diagnosis", ""]
+    verdict = result["verdict"]
+    if verdict == "none":
+        lines.append(f"**Verdict: no significant gap.** The held-out gap ({_fmt(result['gap_before'])} rad RMS) is "
+                     f"at the noise floor ({_fmt(result['noise_floor'])} rad).")
+    elif verdict == "explained":
+        lines.append(f"**Verdict: {sel['effect']}** explains the gap: held-out RMS {_fmt(result['gap_before'])} → "
+                     f"{_fmt(result['gap_after_heldout'])} rad (shrink {100 * result['shrink']:.0f} %, "
+                     f"noise floor {_fmt(result['noise_floor'])} rad); margin over the runner-up "
+                     f"({sel['runner_up']}): {_fmt(100 * (sel['margin_over_runner_up'] or 0), 3)} % in score.")
+    else:
+        lines.append(f"**Verdict: unexplained.** No effect in the library brings the held-out gap "
+                     f"({_fmt(result['gap_before'])} rad) near the noise floor ({_fmt(result['noise_floor'])} rad); "
+                     f"the closest, {sel['effect']}, leaves {_fmt(sel['gap_heldout'])} rad.")
+    lines += ["", f"Held out: {result['heldout']}.", ""]
+    if sel:
+        lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
+        for p in sel["parameters"]:
+            lines.append(f"| {p['effect']} | {p['name']} | {_fmt(p['value'])} | [{_fmt(p['ci95'][0])}, "
+                         f"{_fmt(p['ci95'][1])}] | {p['unit']} |")
+        lines.append("")
+    w = result["where"]
+    lines += ["## Where the gap lies", "", f"Worst joint: **{w['worst_joint']}**.", "",
+              "| joint | RMS pos (rad) | floor | RMS vel (rad/s) | lag real vs cmd (s) | lag sim vs cmd (s) | "
+              "extra lag real vs sim (s) |", "|---|---|---|---|---|---|---|"]
+    for j, v in w["per_joint"].items():
+        lines.append(f"| {j} | {_fmt(v['rms_pos'])} | {_fmt(v['floor'])} | {_fmt(v['rms_vel'])} | "
+                     f"{_fmt(v['lag_real_vs_command_s'])} | {_fmt(v['lag_sim_vs_command_s'])} | "
+                     f"{_fmt(v['lag_real_vs_sim_s'])} |")
+    lines += ["", "| regime | share of samples | RMS (rad) | ratio to overall |", "|---|---|---|---|"]
+    for k, v in w["regimes"].items():
+        lines.append(f"| {k} | {100 * v['share_of_samples']:.0f} % | {_fmt(v['rms'])} | {_fmt(v['ratio_to_overall'], 3)} |")
+    lines += ["", "## Ranking (held-out)", "",
+              "| # | effect | params | train gap | held-out gap | shrink | gap / floor |", "|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(result["ranking"], 1):
+        lines.append(f"| {i} | {r['effect']} | {r['nparam']} | {_fmt(r['gap_train'])} | {_fmt(r['gap_heldout'])} | "
+                     f"{100 * r['shrink']:.0f} % | {_fmt(r['gap_over_floor'], 3)} |")
+    lines.append("")
+    for f in figures:
+        lines += [f"![{f}]({f})", ""]
+    return "\n".join(lines)
+
+
+def _plots(result: dict, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rp = result["_replay"]
+    names = result["joints"]
+    sel = result.get("selected") or result.get("closest")
+    files = []
+
+    # Overlay: the held-out windows of the worst joint with the largest gap before.
+    j = names.index(result["where"]["worst_joint"])
+    err = np.sqrt(np.sum((rp["pred_before"][..., j] - rp["target"][..., j]) ** 2 * rp["mask"], axis=1))
+    fig, axes = plt.subplots(1, min(3, len(err)), figsize=(12, 3.2), squeeze=False)
+    for ax, k in zip(axes[0], np.argsort(err)[::-1]):
+        n = int(rp["mask"][k].sum())
+        t = rp["dt"] * np.arange(1, n + 1)
+        ax.plot(t, rp["target"][k, :n, j], "k", label="real")
+        ax.plot(t, rp["pred_before"][k, :n, j], "C3--", label="sim before")
+        ax.plot(t, rp["pred_after"][k, :n, j], "C2", label=f"sim + {sel['family']}" if sel else "sim after")
+        ax.set_xlabel("time in window (s)")
+        ax.set_title(f"{names[j]}, window {k}", fontsize=9)
+    axes[0][0].set_ylabel("position (rad)")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "overlay.png", dpi=90)
+    plt.close(fig)
+    files.append("overlay.png")
+
+    per = result["where"]["per_joint"]
+    after = (sel or {}).get("per_joint_gap_after", {})
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(5, 0.6 * len(names) + 2), 3.2))
+    ax.bar(x - 0.25, [per[n]["rms_pos"] for n in names], 0.25, label="before (all windows)")
+    ax.bar(x, [after.get(n, np.nan) for n in names], 0.25, label="after (held-out)")
+    ax.bar(x + 0.25, [per[n]["floor"] for n in names], 0.25, label="noise floor")
+    ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
+    ax.set_ylabel("RMS position gap (rad)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "per_joint.png", dpi=90)
+    plt.close(fig)
+    files.append("per_joint.png")
+
+    reg = result["where"]["regimes"]
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.bar(list(reg), [v["ratio_to_overall"] for v in reg.values()])
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_ylabel("RMS gap / overall")
+    ax.tick_params(axis="x", rotation=30, labelsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "regimes.png", dpi=90)
+    plt.close(fig)
+    files.append("regimes.png")
+
+    rank = result["ranking"][:12]
+    fig, ax = plt.subplots(figsize=(7, 0.3 * len(rank) + 1.2))
+    ax.barh([r["effect"] for r in rank][::-1], [r["gap_heldout"] for r in rank][::-1])
+    ax.axvline(result["gap_before"], color="C3", label="before")
+    ax.axvline(result["noise_floor"], color="k", ls="--", label="noise floor")
+    ax.set_xlabel("held-out RMS gap (rad)")
+    ax.tick_params(axis="y", labelsize=7)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "ranking.png", dpi=90)
+    plt.close(fig)
+    files.append("ranking.png")
+    return files

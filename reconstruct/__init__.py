@@ -1,0 +1,1 @@
+"""Video → clip: input readers, synthetic benchmark scenes, alignment, planes, contacts, pipeline."""

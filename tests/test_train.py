@@ -1,0 +1,295 @@
+"""Tests of the PPO trainer (``train/``): models, normaliser, env adapter, training, checkpoints.
+
+Everything runs on a small synthetic clip written into a temporary directory, with a few
+envs, short roll-outs and small networks, so the module takes well under a few minutes on
+two CPU cores.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from train.models import (
+    ACTION_DIM,
+    PROPRIO_DIM,
+    TARGET_DIM,
+    Critic,
+    FixedStdGaussian,
+    ModelConfig,
+    ObsNormalizer,
+    RunningMeanStd,
+    TransformerActor,
+    build_actor,
+)
+
+K, N_POINTS = 5, 128
+TINY_TRANSFORMER = ModelConfig(latent_dim=32, ff_dim=64, critic_hidden=(64, 64), pointnet_hidden=(16, 32))
+SMALL_MLP = ModelConfig(actor="mlp", mlp_actor_hidden=(128, 128), critic_hidden=(256, 256),
+                        pointnet_hidden=(16, 32))
+EVAL_START_FRAMES = list(range(0, 80, 8))
+
+
+@pytest.fixture(scope="module")
+def clip_dir(tmp_path_factory) -> Path:
+    """A 3 s clip: walking forward at 0.2 m/s, swinging an arm and bending a knee, with a step box ahead."""
+    from crisp_gym.clip import write_clip
+    from crisp_gym.humanoid import DOF_NAMES, build_humanoid
+    from crisp_gym.motion import Motion, ground
+    from crisp_gym.scene import Box, floor_box
+
+    frames = 90
+    t = np.arange(frames) / 30.0
+    dof = np.zeros((frames, len(DOF_NAMES)))
+    dof[:, DOF_NAMES.index("L_Shoulder_x")] = -1.2 + 0.3 * np.sin(2 * t)
+    dof[:, DOF_NAMES.index("R_Shoulder_x")] = 1.2
+    dof[:, DOF_NAMES.index("L_Knee_y")] = 0.2 * (1 - np.cos(2 * t))
+    dof[:, DOF_NAMES.index("L_Hip_y")] = -0.1 * (1 - np.cos(2 * t))
+    motion = Motion(fps=30, root_pos=np.c_[0.2 * t, np.zeros(frames), np.ones(frames)],
+                    root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)
+    motion = ground(motion, build_humanoid())
+    directory = tmp_path_factory.mktemp("clip") / "walk"
+    boxes = [floor_box(), Box(center=[2.0, 0.0, 0.1], half_size=[0.3, 0.5, 0.1])]
+    write_clip(directory, boxes, motion, {"source": "test"})
+    return directory
+
+
+def _obs(batch: tuple[int, ...], scene_aware: bool, seed: int = 0) -> list[torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    obs = [torch.randn(*batch, PROPRIO_DIM, generator=g), torch.randn(*batch, K, TARGET_DIM, generator=g)]
+    if scene_aware:
+        obs.append(torch.randn(*batch, N_POINTS, 3, generator=g))
+    return obs
+
+
+# ----------------------------------------------------------------------------- models
+
+
+@pytest.mark.parametrize("actor", ["transformer", "mlp"])
+@pytest.mark.parametrize("scene_aware", [False, True], ids=["blind", "scene"])
+def test_model_shapes(actor: str, scene_aware: bool) -> None:
+    config = replace(ModelConfig(), actor=actor)
+    normalizer = ObsNormalizer(K)
+    policy = FixedStdGaussian(build_actor(config, K, scene_aware, normalizer), config.action_std)
+    critic = Critic(K, N_POINTS if scene_aware else 0, normalizer, config.critic_hidden)
+    obs = _obs((2, 3), scene_aware)
+    loc, scale = policy(*obs)
+    assert loc.shape == scale.shape == (2, 3, ACTION_DIM)
+    assert torch.all(scale == 0.055)
+    assert critic(*obs).shape == (2, 3, 1)
+    # leading batch dimensions are independent: a flat batch gives the same numbers
+    flat = [x.reshape(6, *x.shape[2:]) for x in obs]
+    torch.testing.assert_close(policy(*flat)[0], loc.reshape(6, ACTION_DIM))
+    # the untrained policy's residual actions start near zero
+    assert loc.abs().max() < 0.1
+    if scene_aware:
+        with pytest.raises(ValueError, match="points"):
+            policy(*obs[:2])
+
+
+def test_transformer_tokens_and_paper_size() -> None:
+    config = ModelConfig(num_point_tokens=2)
+    actor = TransformerActor(K, True, ObsNormalizer(K), config)
+    proprio, targets, points = _obs((4,), True)
+    tokens = actor.tokens(proprio, targets, points)
+    assert tokens.shape == (4, 1 + K + 2, 256)  # proprio + one per target frame + point tokens
+    layer = actor.encoder.layers[0]
+    assert len(actor.encoder.layers) == 2
+    assert layer.self_attn.num_heads == 2 and layer.linear1.out_features == 512
+    critic = Critic(K, 0, ObsNormalizer(K))
+    assert [m.out_features for m in critic.net if isinstance(m, torch.nn.Linear)] == [1024, 512, 1]
+
+
+def test_running_mean_std_matches_numpy() -> None:
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(loc=3.0, scale=s, size=(n, 4, 6)) for n, s in [(7, 0.5), (100, 2.0), (1, 1.0), (33, 4.0)]]
+    stats = RunningMeanStd((4, 6), clip=1e9)
+    for b in batches:
+        stats.update(torch.as_tensor(b, dtype=torch.float32))
+    data = np.concatenate(batches).astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(stats.mean.numpy(), data.mean(axis=0), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(stats.var.numpy(), data.var(axis=0), rtol=1e-9)
+    assert stats.count.item() == len(data)
+    normalised = stats(torch.as_tensor(data, dtype=torch.float32)).double().numpy()
+    np.testing.assert_allclose(normalised.mean(axis=0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(normalised.std(axis=0), 1.0, atol=1e-4)
+    # clipping
+    clipped = RunningMeanStd(3, clip=2.0)
+    assert clipped(torch.tensor([100.0, -100.0, 0.5])).tolist() == pytest.approx([2.0, -2.0, 0.5], abs=1e-4)
+
+
+def test_obs_normalizer_is_shared_and_saved() -> None:
+    normalizer = ObsNormalizer(K)
+    actor = build_actor(SMALL_MLP, K, False, normalizer)
+    critic = Critic(K, 0, normalizer, SMALL_MLP.critic_hidden)
+    proprio, targets = _obs((50,), False)
+    normalizer.update(proprio * 3 + 1, targets)
+    assert torch.equal(actor.state_dict()["normalizer.proprio.mean"], critic.state_dict()["normalizer.proprio.mean"])
+    assert actor.state_dict()["normalizer.proprio.count"].item() == 50
+
+
+def test_normalize_advantages() -> None:
+    from train.ppo import normalize_advantages
+
+    advantage = torch.randn(4096, 1, generator=torch.Generator().manual_seed(1)) * 37.0 + 12.0
+    normalised = normalize_advantages(advantage)
+    assert normalised.shape == advantage.shape
+    assert abs(normalised.mean().item()) < 1e-5
+    assert normalised.std(unbiased=False).item() == pytest.approx(1.0, abs=1e-5)
+    assert torch.equal(normalize_advantages(torch.tensor([[5.0]])), torch.tensor([[0.0]]))
+
+
+# ----------------------------------------------------------------------------- env adapter
+
+
+def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
+    from torchrl.envs.utils import check_env_specs
+
+    from train.ppo import make_env, paper_profile
+
+    env = make_env(paper_profile(clip=str(clip_dir), num_envs=4, scene_aware=True), seed=0)
+    check_env_specs(env)
+    rollout = env.rollout(60, policy=lambda td: td.set("action", torch.zeros(4, ACTION_DIM)),
+                          break_when_any_done=False)
+    done = rollout["next", "done"].squeeze(-1)
+    assert done.any(), "the clip is 90 frames long: some episodes must end within 60 steps"
+    env_id, step = [int(i) for i in done.nonzero()[0]]
+    # "next" holds the episode's last observation, the following root the next episode's first
+    last, first = rollout["next", "proprio"][env_id, step], rollout["proprio"][env_id, step + 1]
+    assert not torch.allclose(last, first)
+    assert rollout["episode_length"][env_id, step + 1].item() == 0
+    assert rollout["next", "episode_length"][env_id, step].item() >= 1
+    env.close()
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  # noqa: F821
+    from train.ppo import cpu_profile
+
+    base = dict(clip=str(clip_dir), output=output, num_envs=16, steps_per_env=32, minibatch_size=256, epochs=4,
+                actor_lr=1e-4, critic_lr=1e-3, model=SMALL_MLP, checkpoint_every=4, progress=False, seed=3,
+                torch_threads=2)
+    return cpu_profile(**{**base, **overrides})
+
+
+@pytest.fixture(scope="module")
+def trained_run(clip_dir: Path, tmp_path_factory):
+    """A run started from a deliberately biased policy, evaluated before and after ~4K frames.
+
+    The untrained policy's residual actions are near zero, which already tracks the reference
+    fairly well; adding 0.05 rad to every action makes it clearly worse, so a few thousand
+    frames of PPO must show a measurable improvement.
+    """
+    from train.evaluate import evaluate
+    from train.ppo import load_checkpoint, load_policy, train
+
+    output = tmp_path_factory.mktemp("run")
+    cfg = _tiny_config(clip_dir, output, frames=0)
+    assert train(cfg).iteration == 0
+    state = load_checkpoint(output)
+    state["actor"]["actor.net.4.bias"] += 0.05  # the MLP's action head
+    torch.save(state, output / "checkpoint.pt")
+    before = evaluate(load_policy(output)[0], clip_dir, EVAL_START_FRAMES)
+    result = train(replace(cfg, frames=4096, resume=True))
+    after = evaluate(load_policy(output)[0], clip_dir, EVAL_START_FRAMES)
+    return cfg, result, before, after
+
+
+def test_training_losses_are_finite_and_critic_learns(trained_run) -> None:
+    _, result, _, _ = trained_run
+    assert result.frames == 4096 and result.iteration == 8
+    updates = [row for row in result.history if "loss_critic" in row]
+    assert len(updates) == 7  # the first batch only initialises the observation statistics
+    for row in updates:
+        for key in ("loss_objective", "loss_critic", "kl_approx", "clip_fraction"):
+            assert np.isfinite(row[key]), (key, row)
+    critic_losses = [row["loss_critic"] for row in updates]
+    assert np.mean(critic_losses[-3:]) < 0.5 * critic_losses[0]
+    assert updates[-1]["explained_variance"] > 0.3
+    assert all(abs(row["loss_objective"]) < 1.0 for row in updates)  # normalised advantages, clipped ratios
+    assert any(row["episodes"] > 0 for row in result.history)
+
+
+def test_policy_improves_on_fixed_start_frames(trained_run) -> None:
+    _, _, before, after = trained_run
+    assert len(before.returns) == len(EVAL_START_FRAMES)
+    assert after.mean_return > before.mean_return + 3.0, (before.mean_return, after.mean_return)
+
+
+def test_progress_csv_and_config(trained_run) -> None:
+    cfg, result, _, _ = trained_run
+    rows = list(csv.DictReader(open(Path(cfg.output) / "progress.csv")))
+    assert [int(r["iteration"]) for r in rows] == list(range(1, 9))
+    assert int(rows[-1]["frames"]) == result.frames
+    assert (Path(cfg.output) / "config.json").is_file()
+    assert not list(Path(cfg.output).glob("*.tmp"))
+
+
+def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
+    from train.ppo import load_checkpoint, load_policy, train
+
+    cfg, result, _, _ = trained_run
+    state = load_checkpoint(cfg.output)
+    assert state["iteration"] == result.iteration and state["frames"] == result.frames
+    # identical outputs after a save/load round trip (weights and normaliser statistics)
+    policy_a, loaded_cfg = load_policy(cfg.output)
+    policy_b, _ = load_policy(cfg.output)
+    assert loaded_cfg == replace(cfg, frames=result.frames, resume=True)
+    obs = _obs((8,), False, seed=5)
+    torch.testing.assert_close(policy_a(*obs)[0], policy_b(*obs)[0], rtol=0, atol=0)
+    assert policy_a.actor.normalizer.proprio.count.item() > 0
+    # resuming continues the iteration and frame counts
+    resumed = train(replace(cfg, frames=result.frames + cfg.frames_per_iteration, resume=True))
+    assert resumed.iteration == result.iteration + 1
+    assert resumed.frames == result.frames + cfg.frames_per_iteration
+    assert len(resumed.history) == 1
+    # a fresh run refuses to overwrite a checkpoint; resuming with another architecture is an error
+    with pytest.raises(FileExistsError):
+        train(replace(cfg, resume=False))
+    with pytest.raises(ValueError, match="model"):
+        train(replace(cfg, resume=True, model=TINY_TRANSFORMER))
+    with pytest.raises(FileNotFoundError):
+        train(replace(cfg, output=tmp_path / "nothing", resume=True))
+
+
+def test_save_load_agent_exact(tmp_path: Path) -> None:
+    from train.ppo import build_agent, load_policy, paper_profile, save_checkpoint
+
+    cfg = paper_profile(output=tmp_path, scene_aware=True, model=TINY_TRANSFORMER)
+    agent = build_agent(cfg.model, K, N_POINTS)
+    agent.normalizer.update(*_obs((64,), False, seed=2))
+    optimizer = torch.optim.Adam(agent.actor.parameters())
+    save_checkpoint(tmp_path / "checkpoint.pt", agent, optimizer, 7, 1234, cfg, torch.Generator())
+    loaded, loaded_cfg = load_policy(tmp_path)
+    assert loaded_cfg == cfg
+    obs = _obs((3,), True, seed=9)
+    torch.testing.assert_close(loaded(*obs)[0], agent.actor(*obs)[0], rtol=0, atol=0)
+
+
+def test_scene_aware_transformer_trains(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import train
+
+    cfg = _tiny_config(clip_dir, tmp_path, scene_aware=True, model=TINY_TRANSFORMER, num_envs=4, frames=512,
+                       minibatch_size=64, epochs=1)
+    result = train(cfg)
+    assert result.iteration == 4
+    assert all(np.isfinite(row["loss_critic"]) for row in result.history if "loss_critic" in row)
+
+
+def test_cli(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import main
+
+    out = tmp_path / "cli"
+    assert main(["--profile", "cpu", "--clip", str(clip_dir), "--scene-aware", "--frames", "64", "--num-envs", "2",
+                 "--steps-per-env", "32", "-o", str(out), "--no-progress", "--model.mlp-actor-hidden", "32",
+                 "--model.critic-hidden", "32"]) == 0
+    assert (out / "checkpoint.pt").is_file() and (out / "config.json").is_file()
+    with pytest.raises(SystemExit):
+        main(["--profile", "nope"])

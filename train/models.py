@@ -1,0 +1,341 @@
+"""Policy and value networks for ``CrispTrack-v0`` (paper, Sec. 3.4 and App. "RL training details").
+
+Every module here is plain torch: it takes the observation tensors (``proprio`` (…, 361),
+``targets`` (…, K, 432) and, scene-aware, ``points`` (…, N, 3)) with any number of leading
+batch dimensions and returns tensors. TorchRL wraps them in :mod:`train.ppo`.
+
+* :class:`TransformerActor`: the paper's actor. One token from the proprioception, one per
+  future target frame and, scene-aware, ``num_point_tokens`` tokens from a :class:`PointNet`
+  over the points; a transformer encoder (latent 256, feed-forward 512, 2 layers, 2 heads);
+  mean-pooled tokens → 69 action means.
+* :class:`MLPActor`: the same inputs flattened into an MLP of similar size (the CPU profile:
+  a PPO epoch costs about a third of the transformer's on two cores).
+* :class:`FixedStdGaussian`: actor → (mean, σ) with the paper's fixed σ = 0.055.
+* :class:`Critic`: MLP with hidden sizes [1024, 512].
+* :class:`ObsNormalizer`: running mean/variance per feature, updated from collected batches;
+  its statistics are buffers, so they are saved and loaded with the module's ``state_dict``.
+
+The actor and the critic hold the *same* :class:`ObsNormalizer` instance. Points are not
+normalised: they are already metres in the pelvis's heading frame, and the PointNet is
+invariant to their order, which per-point statistics would break.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+PROPRIO_DIM = 361
+TARGET_DIM = 432
+ACTION_DIM = 69
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of the actor and the critic; the defaults are the paper's.
+
+    Attributes:
+        actor: ``"transformer"`` (the paper's) or ``"mlp"``.
+        latent_dim: transformer token width.
+        ff_dim: transformer feed-forward width.
+        num_layers: transformer encoder layers.
+        num_heads: self-attention heads.
+        num_point_tokens: tokens the PointNet feature is projected to (scene-aware only).
+        pointnet_hidden: widths of the PointNet's shared per-point MLP (the last one is the
+            pooled feature size).
+        mlp_actor_hidden: hidden sizes of the MLP actor.
+        critic_hidden: hidden sizes of the critic (paper: [1024, 512]).
+        action_std: the Gaussian policy's fixed standard deviation (paper: 0.055).
+        obs_clip: normalised observations are clipped to ± this.
+        init_action_std: standard deviation of the action head's initial weights; small, so the
+            untrained policy's residual actions start near zero (track the reference pose).
+    """
+
+    actor: str = "transformer"
+    latent_dim: int = 256
+    ff_dim: int = 512
+    num_layers: int = 2
+    num_heads: int = 2
+    num_point_tokens: int = 1
+    pointnet_hidden: tuple[int, ...] = (64, 128, 256)
+    mlp_actor_hidden: tuple[int, ...] = (512, 512)
+    critic_hidden: tuple[int, ...] = (1024, 512)
+    action_std: float = 0.055
+    obs_clip: float = 5.0
+    init_action_std: float = 0.001
+
+    def __post_init__(self) -> None:
+        if self.actor not in ("transformer", "mlp"):
+            raise ValueError(f"actor must be 'transformer' or 'mlp', got {self.actor!r}")
+        if self.latent_dim % self.num_heads:
+            raise ValueError(f"latent_dim ({self.latent_dim}) must be divisible by num_heads ({self.num_heads})")
+        if self.action_std <= 0 or self.obs_clip <= 0:
+            raise ValueError("action_std and obs_clip must be positive")
+        if self.num_point_tokens < 1 or not self.pointnet_hidden:
+            raise ValueError("num_point_tokens must be at least 1 and pointnet_hidden non-empty")
+
+
+def mlp(in_dim: int, hidden: Sequence[int], out_dim: int | None = None, activation: type[nn.Module] = nn.ELU,
+        ) -> nn.Sequential:
+    """Linear + activation per hidden size, then an optional linear output layer."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(in_dim, width), activation()]
+        in_dim = width
+    if out_dim is not None:
+        layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class RunningMeanStd(nn.Module):
+    """Per-feature running mean and (population) variance of a stream of batches.
+
+    Batches are merged exactly (Chan et al.'s parallel update) in float64, so after any
+    sequence of :meth:`update` calls ``mean``/``var`` equal the mean and ``ddof=0`` variance of
+    all samples seen. :meth:`forward` returns ``(x - mean) / sqrt(var + eps)`` clipped to
+    ``± clip`` in ``x``'s dtype.
+
+    Args:
+        shape: feature shape (the trailing dimensions of the inputs).
+        eps: added to the variance before the square root.
+        clip: bound of the normalised values.
+    """
+
+    def __init__(self, shape: int | Sequence[int], eps: float = 1e-5, clip: float = 5.0):
+        super().__init__()
+        self.shape = torch.Size([shape] if isinstance(shape, int) else shape)
+        self.eps = eps
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(self.shape, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(self.shape, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge a batch ``x`` (…, *shape) into the statistics (in place)."""
+        x = x.detach().reshape(-1, *self.shape).to(torch.float64)
+        n = x.shape[0]
+        if n == 0:
+            return
+        batch_mean = x.mean(dim=0)
+        batch_var = x.var(dim=0, unbiased=False)
+        total = self.count + n
+        delta = batch_mean - self.mean
+        new_mean = self.mean + delta * (n / total)
+        m2 = self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)
+        self.mean.copy_(new_mean)
+        self.var.copy_(m2 / total)
+        self.count.fill_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        mean = self.mean.to(x.dtype)
+        std = torch.sqrt(self.var + self.eps).to(x.dtype)
+        return ((x - mean) / std).clamp(-self.clip, self.clip)
+
+
+class ObsNormalizer(nn.Module):
+    """Running normalisation of ``proprio`` and ``targets`` (per feature; points pass through).
+
+    Args:
+        num_targets: K, the future frames in ``targets``.
+        clip: bound of the normalised values.
+        enabled: ``False`` makes it the identity (and :meth:`update` a no-op).
+    """
+
+    def __init__(self, num_targets: int, clip: float = 5.0, enabled: bool = True):
+        super().__init__()
+        self.enabled = enabled
+        self.proprio = RunningMeanStd(PROPRIO_DIM, clip=clip)
+        self.targets = RunningMeanStd((num_targets, TARGET_DIM), clip=clip)
+
+    @torch.no_grad()
+    def update(self, proprio: torch.Tensor, targets: torch.Tensor) -> None:
+        """Merge a batch of observations into the statistics."""
+        if self.enabled:
+            self.proprio.update(proprio)
+            self.targets.update(targets)
+
+    def forward(self, proprio: torch.Tensor, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if not self.enabled:
+            return proprio, targets
+        return self.proprio(proprio), self.targets(targets)
+
+
+class PointNet(nn.Module):
+    """Shared per-point MLP followed by a max over points: (…, N, 3) → (…, hidden[-1])."""
+
+    def __init__(self, hidden: Sequence[int] = (64, 128, 256)):
+        super().__init__()
+        self.point_mlp = mlp(3, hidden[:-1], hidden[-1])
+        self.out_dim = hidden[-1]
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.point_mlp(points).amax(dim=-2)
+
+
+def _flatten_batch(x: torch.Tensor, feature_dims: int) -> tuple[torch.Tensor, torch.Size]:
+    """Collapse the leading batch dimensions of ``x`` into one; returns them for restoring."""
+    batch = x.shape[: x.dim() - feature_dims]
+    return x.reshape(-1, *x.shape[x.dim() - feature_dims:]), batch
+
+
+def _check_points(scene_aware: bool, points: torch.Tensor | None) -> None:
+    if scene_aware and points is None:
+        raise ValueError("this network is scene-aware: pass the 'points' observation")
+
+
+class TransformerActor(nn.Module):
+    """The paper's transformer actor: observation tokens → encoder → mean pool → action means.
+
+    Tokens: ``proprio`` → 1 token; each of the K ``targets`` frames → 1 token (a shared
+    projection plus a learned per-frame embedding); scene-aware, the PointNet feature →
+    ``num_point_tokens`` tokens. Every token also gets a learned type embedding.
+
+    Args:
+        num_targets: K.
+        scene_aware: expect ``points``.
+        normalizer: the shared observation normaliser.
+        config: architecture.
+    """
+
+    def __init__(self, num_targets: int, scene_aware: bool, normalizer: ObsNormalizer,
+                 config: ModelConfig = ModelConfig()):
+        super().__init__()
+        d = config.latent_dim
+        self.scene_aware = scene_aware
+        self.normalizer = normalizer
+        self.num_point_tokens = config.num_point_tokens
+        self.proprio_embed = nn.Linear(PROPRIO_DIM, d)
+        self.target_embed = nn.Linear(TARGET_DIM, d)
+        self.frame_embed = nn.Parameter(torch.zeros(num_targets, d))
+        num_types = 3 if scene_aware else 2
+        self.type_embed = nn.Parameter(torch.zeros(num_types, d))
+        if scene_aware:
+            self.pointnet = PointNet(config.pointnet_hidden)
+            self.point_embed = nn.Linear(self.pointnet.out_dim, d * config.num_point_tokens)
+        layer = nn.TransformerEncoderLayer(d, config.num_heads, config.ff_dim, dropout=0.0, activation="gelu",
+                                           batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(layer, config.num_layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(d)
+        self.action_head = nn.Linear(d, ACTION_DIM)
+        nn.init.normal_(self.frame_embed, std=0.02)
+        nn.init.normal_(self.type_embed, std=0.02)
+        nn.init.normal_(self.action_head.weight, std=config.init_action_std)
+        nn.init.zeros_(self.action_head.bias)
+
+    def tokens(self, proprio: torch.Tensor, targets: torch.Tensor,
+               points: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, T, latent) input tokens for flattened batches."""
+        proprio, targets = self.normalizer(proprio, targets)
+        tokens = [self.proprio_embed(proprio)[:, None] + self.type_embed[0],
+                  self.target_embed(targets) + self.frame_embed + self.type_embed[1]]
+        if self.scene_aware:
+            feature = self.point_embed(self.pointnet(points))
+            tokens.append(feature.reshape(len(feature), self.num_point_tokens, -1) + self.type_embed[2])
+        return torch.cat(tokens, dim=1)
+
+    def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
+                points: torch.Tensor | None = None) -> torch.Tensor:
+        """Action means (…, 69)."""
+        _check_points(self.scene_aware, points)
+        proprio, batch = _flatten_batch(proprio, 1)
+        targets, _ = _flatten_batch(targets, 2)
+        if self.scene_aware:
+            points, _ = _flatten_batch(points, 2)
+        encoded = self.encoder(self.tokens(proprio, targets, points))
+        return self.action_head(self.norm(encoded.mean(dim=1))).reshape(*batch, ACTION_DIM)
+
+
+class MLPActor(nn.Module):
+    """MLP actor: normalised ``proprio`` and flattened ``targets`` (+ a PointNet feature) → action means.
+
+    Args:
+        num_targets: K.
+        scene_aware: expect ``points`` (encoded by a :class:`PointNet`).
+        normalizer: the shared observation normaliser.
+        config: architecture (``mlp_actor_hidden``, ``pointnet_hidden``).
+    """
+
+    def __init__(self, num_targets: int, scene_aware: bool, normalizer: ObsNormalizer,
+                 config: ModelConfig = ModelConfig()):
+        super().__init__()
+        self.scene_aware = scene_aware
+        self.normalizer = normalizer
+        in_dim = PROPRIO_DIM + num_targets * TARGET_DIM
+        if scene_aware:
+            self.pointnet = PointNet(config.pointnet_hidden)
+            in_dim += self.pointnet.out_dim
+        self.net = mlp(in_dim, config.mlp_actor_hidden, ACTION_DIM)
+        head = self.net[-1]
+        nn.init.normal_(head.weight, std=config.init_action_std)
+        nn.init.zeros_(head.bias)
+
+    def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
+                points: torch.Tensor | None = None) -> torch.Tensor:
+        """Action means (…, 69)."""
+        _check_points(self.scene_aware, points)
+        proprio, targets = self.normalizer(proprio, targets)
+        features = [proprio, targets.flatten(-2)]
+        if self.scene_aware:
+            features.append(self.pointnet(points))
+        return self.net(torch.cat(features, dim=-1))
+
+    @property
+    def action_head(self) -> nn.Linear:
+        return self.net[-1]
+
+
+class FixedStdGaussian(nn.Module):
+    """Wraps an actor into the parameters of a diagonal Gaussian with a fixed σ.
+
+    ``forward`` returns ``(loc, scale)``; ``scale`` is a constant (not learned), as in the
+    paper (σ = 0.055).
+    """
+
+    def __init__(self, actor: nn.Module, std: float = 0.055):
+        super().__init__()
+        self.actor = actor
+        self.register_buffer("std", torch.tensor(float(std)))
+
+    def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
+                points: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.actor(proprio, targets, points)
+        return loc, self.std.expand_as(loc)
+
+
+class Critic(nn.Module):
+    """MLP value function on normalised ``proprio``, flattened ``targets`` and flattened ``points``.
+
+    Args:
+        num_targets: K.
+        num_points: N (scene-aware), or 0.
+        normalizer: the shared observation normaliser.
+        hidden: hidden sizes (paper: [1024, 512]).
+    """
+
+    def __init__(self, num_targets: int, num_points: int, normalizer: ObsNormalizer,
+                 hidden: Sequence[int] = (1024, 512)):
+        super().__init__()
+        self.scene_aware = num_points > 0
+        self.normalizer = normalizer
+        self.net = mlp(PROPRIO_DIM + num_targets * TARGET_DIM + 3 * num_points, hidden, 1)
+
+    def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
+                points: torch.Tensor | None = None) -> torch.Tensor:
+        """State values (…, 1)."""
+        _check_points(self.scene_aware, points)
+        proprio, targets = self.normalizer(proprio, targets)
+        features = [proprio, targets.flatten(-2)]
+        if self.scene_aware:
+            features.append(points.flatten(-2))
+        return self.net(torch.cat(features, dim=-1))
+
+
+def build_actor(config: ModelConfig, num_targets: int, scene_aware: bool,
+                normalizer: ObsNormalizer) -> TransformerActor | MLPActor:
+    """The actor named by ``config.actor``."""
+    cls = TransformerActor if config.actor == "transformer" else MLPActor
+    return cls(num_targets, scene_aware, normalizer, config)
