@@ -293,3 +293,25 @@ def test_cli(clip_dir: Path, tmp_path: Path) -> None:
     assert (out / "checkpoint.pt").is_file() and (out / "config.json").is_file()
     with pytest.raises(SystemExit):
         main(["--profile", "nope"])
+
+
+def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import load_checkpoint, make_env, train
+
+    def env_fn(cfg, seed):
+        env = make_env(cfg, seed)
+        step, calls = env.vec_env.step, []
+
+        def interrupting_step(actions):
+            calls.append(1)
+            if len(calls) == 3 * cfg.steps_per_env + 5:  # Ctrl-C during the fourth collection
+                raise KeyboardInterrupt
+            return step(actions)
+        env.vec_env.step = interrupting_step
+        return env
+
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=2, frames=10**6, checkpoint_every=100)
+    result = train(cfg, env_fn=env_fn)
+    assert result.interrupted and result.iteration == 3
+    assert load_checkpoint(tmp_path)["iteration"] == 3
+    assert not list(tmp_path.glob("*.tmp"))
