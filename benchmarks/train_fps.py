@@ -12,8 +12,7 @@ wall-clock time of the measured iterations into:
     python benchmarks/train_fps.py                      # CPU profile, MLP and transformer actors
     python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
 
-Without ``--clip`` (or when the named clip is not installed) a synthetic 3 s walking clip with
-one step box is generated in a temporary directory.
+The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
 """
 
 from __future__ import annotations
@@ -23,11 +22,10 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
 import torch
 import tyro
 
-from train.models import ModelConfig
+from crisp_gym.registry import resolve_clip
 from train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
 
 
@@ -36,7 +34,7 @@ class Args:
     """Benchmark options.
 
     Attributes:
-        clip: clip name or directory; empty: a generated synthetic clip.
+        clip: clip name or directory.
         profile: ``cpu`` or ``paper`` defaults for everything not set here.
         actors: actor architectures to measure.
         scene: which variants to measure (``blind``, ``aware``).
@@ -49,7 +47,7 @@ class Args:
         seed: run seed.
     """
 
-    clip: str = ""
+    clip: str = "flat_walk"
     profile: str = "cpu"
     actors: tuple[str, ...] = ("mlp", "transformer")
     scene: tuple[str, ...] = ("blind", "aware")
@@ -86,39 +84,6 @@ class _TimedBatch:
         return getattr(self._batch, name)
 
 
-def synthetic_clip(directory: Path) -> Path:
-    """A 3 s clip: slow walk with an arm swing and a knee bend, a 0.2 m step box 2 m ahead."""
-    from crisp_gym.clip import write_clip
-    from crisp_gym.humanoid import DOF_NAMES, build_humanoid
-    from crisp_gym.motion import Motion, ground
-    from crisp_gym.scene import Box, floor_box
-
-    frames = 90
-    t = np.arange(frames) / 30.0
-    dof = np.zeros((frames, len(DOF_NAMES)))
-    dof[:, DOF_NAMES.index("L_Shoulder_x")] = -1.2 + 0.3 * np.sin(2 * t)
-    dof[:, DOF_NAMES.index("R_Shoulder_x")] = 1.2
-    dof[:, DOF_NAMES.index("L_Knee_y")] = 0.2 * (1 - np.cos(2 * t))
-    dof[:, DOF_NAMES.index("L_Hip_y")] = -0.1 * (1 - np.cos(2 * t))
-    motion = Motion(fps=30, root_pos=np.c_[0.2 * t, np.zeros(frames), np.ones(frames)],
-                    root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)
-    motion = ground(motion, build_humanoid())
-    write_clip(directory, [floor_box(), Box(center=[2.0, 0.0, 0.1], half_size=[0.3, 0.5, 0.1])], motion,
-               {"source": "synthetic benchmark clip"})
-    return directory
-
-
-def _resolve_clip(name: str, tmp: Path) -> str:
-    if name:
-        from crisp_gym.registry import resolve_clip
-        try:
-            resolve_clip(name)
-            return name
-        except (FileNotFoundError, KeyError, ValueError):
-            print(f"clip {name!r} is not installed; using a synthetic clip")
-    return str(synthetic_clip(tmp / "synthetic"))
-
-
 def measure(cfg: TrainConfig, warmup: int) -> dict[str, float]:
     """Run ``cfg`` and return FPS and time shares over its iterations after ``warmup``."""
     batches: list[_TimedBatch] = []
@@ -153,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, profile: {args.profile}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        clip = _resolve_clip(args.clip, Path(tmp))
+        clip = str(resolve_clip(args.clip))
         for actor in args.actors:
             for scene in args.scene:
                 cfg = replace(base, clip=clip, output=Path(tmp) / f"{actor}-{scene}", scene_aware=scene == "aware",

@@ -13,6 +13,7 @@ import numpy as np
 from crisp_gym.clip import Clip
 from crisp_gym.envs.config import TrackConfig, default_config
 from crisp_gym.envs.task import TrackingTask
+from crisp_gym.envs.tracking import max_body_error
 
 _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
 
@@ -103,7 +104,7 @@ class CrispTrackEnv(gym.Env):
         mujoco.mj_step1(self.model, self.data)
         frame, state = np.array([start]), self._state()
         obs = self.task.observe(state, frame)
-        error = self.task.evaluate(state, frame)[4]
+        error = max_body_error(state, self.task.reference, frame)
         return ({k: v[0] for k, v in obs.items()},
                 {"frame": start, "start_frame": start, "max_body_error": float(error[0])})
 

@@ -24,6 +24,7 @@ from gymnasium.vector.utils import batch_space
 from crisp_gym.clip import Clip
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.task import TrackingTask
+from crisp_gym.envs.tracking import max_body_error
 from crisp_gym.envs.track import make_config
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force")
@@ -94,7 +95,7 @@ class CrispTrackVectorEnv(VectorEnv):
         self._reset_sims(self._all, frames)
         state = self._state()
         obs = self.task.observe(state, self._frame)
-        error = self.task.evaluate(state, self._frame)[4]
+        error = max_body_error(state, self.task.reference, self._frame)
         return obs, {"frame": self._frame.copy(), "start_frame": self._start_frame.copy(), "max_body_error": error}
 
     def step(self, actions):

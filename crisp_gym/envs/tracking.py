@@ -32,7 +32,7 @@ import numpy as np
 from crisp_gym.envs import quat
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg
-from crisp_gym.motion import Motion, compute_kinematics, humanoid_body_ids
+from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.scene import Box, add_boxes, sample_surface_points
 
 NUM_BODIES = len(BODY_NAMES)
