@@ -14,7 +14,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "clips": ("crisp_gym.clips_cli", "list the registered clips"),
     "import-motion": ("crisp_gym.import_motion", "make a flat-ground clip from a BVH/SMPL/motion.npz file"),
     "synth-clips": ("reconstruct.synth", "regenerate the bundled synthetic clips"),
+    "synth": ("reconstruct.synth_video", "render a synthetic depth video with ground truth"),
+    "reconstruct": ("reconstruct.pipeline", "reconstruct a clip from a depth video and a human motion"),
+    "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),
     "train": ("train.ppo", "train a tracking policy with PPO"),
+    "eval": ("train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),
     "gap": ("crisp_gym.sim2real.cli", "sim-to-real gap: `crisp gap diagnose` / `crisp gap bench`"),
 }
 
