@@ -12,6 +12,9 @@ poses: our humanoid rests in a T-pose, a BVH may rest with arms down or legs apa
 of our bodies takes the world rotation of its BVH joint *relative to the BVH rest*, composed
 with the fixed rotation that turns our rest bone into the BVH's rest bone. The file's axes
 (up from ``up_axis``, facing from the rest hips) become ours: z up, facing +x, left +y.
+The root follows the file's root joint; only its height is then corrected, by a smooth
+per-frame offset that puts the planted feet on the floor (captured floors drift by a few
+centimetres within a take, and one constant offset leaves feet floating or sunk).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, default_rest_joints, joint_range_deg
-from crisp_gym.motion import Motion, ground, rotations_to_hinge_angles
+from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, rotations_to_hinge_angles
 
 log = logging.getLogger(__name__)
 
@@ -452,13 +455,15 @@ class BvhRetarget:
     """The result of :func:`retarget_bvh`, with what was done to get it.
 
     Attributes:
-        motion: the humanoid motion, grounded (feet on z = 0).
+        motion: the humanoid motion, grounded (planted feet on z = 0).
         unit_scale: metres per BVH unit used.
         joints: our body -> the BVH joint name that drives it.
         to_ours: (3, 3) rotation from the file's axes to ours.
         clipped_fraction: share of hinge values moved into the humanoid's ranges.
         max_clip_deg: the largest such move in degrees.
-        ground_offset: metres added to every root height to put the feet on the floor.
+        ground_offset: (T,) metres added to each frame's root height to put the feet on the
+            floor: a slowly varying correction where the capture's floor drifts, constant
+            when grounded without ``grounding``.
     """
 
     motion: Motion
@@ -467,16 +472,20 @@ class BvhRetarget:
     to_ours: np.ndarray
     clipped_fraction: float
     max_clip_deg: float
-    ground_offset: float
+    ground_offset: np.ndarray
 
 
 def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str = "y",
                  joint_map: Mapping[str, str] | None = None, clip_to_range: bool = True,
-                 model: mujoco.MjModel | None = None) -> BvhRetarget:
+                 model: mujoco.MjModel | None = None,
+                 grounding: StanceGrounding | None = StanceGrounding()) -> BvhRetarget:
     """Retarget a parsed BVH onto the humanoid (see the module docstring for the method).
 
     ``joint_map`` (our body -> BVH joint name) replaces the built-in tables; ``model`` is the
-    humanoid used for grounding (the default 1.70 m one when ``None``).
+    humanoid used for grounding (the default 1.70 m one when ``None``). ``grounding`` puts the
+    planted feet on the floor frame by frame (motion capture floors drift by centimetres over a
+    take, see :func:`~crisp_gym.motion.stance_floor`); ``None`` shifts the whole motion by one
+    offset instead (:func:`~crisp_gym.motion.ground`).
     """
     skeleton = clip.skeleton
     mapping = match_joints(skeleton, joint_map)
@@ -513,8 +522,8 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     root_quat = Rotation.from_matrix(glob["Pelvis"]).as_quat(scalar_first=True)
     motion = Motion(fps=clip.fps, root_pos=root_pos, root_quat=root_quat, dof_pos=angles)
     model = model if model is not None else build_humanoid()
-    grounded = ground(motion, model)
-    offset = float(grounded.root_pos[0, 2] - motion.root_pos[0, 2])
+    grounded = ground(motion, model) if grounding is None else ground_stance(motion, model, grounding)
+    offset = grounded.root_pos[:, 2] - motion.root_pos[:, 2]
     if clipped_fraction > 0:
         log.info("BVH retarget clipped %.2f%% of hinge values into range (at most %.1f deg)",
                  100 * clipped_fraction, max_clip)

@@ -65,7 +65,10 @@ def read_motion(path: Path, fps: float, smpl_fps: float = 30.0, up_axis: str = "
                              f"(global_orient, body_pose, transl); found {sorted(keys)}")
     else:
         raise ValueError(f"{path}: unsupported motion file type {suffix!r} (expected .bvh or .npz)")
-    return ground(motion.resample(fps), build_humanoid())
+    motion = motion.resample(fps)
+    # The BVH loader already grounds per frame from the stance feet; a second, constant grounding
+    # would lift the whole clip onto its single lowest frame.
+    return motion if suffix == ".bvh" else ground(motion, build_humanoid())
 
 
 def import_motion(args: ImportMotionArgs) -> Path:

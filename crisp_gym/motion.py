@@ -18,6 +18,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
@@ -356,3 +357,72 @@ def ground(motion: Motion, model: mujoco.MjModel, floor_height: float = 0.0,
     """
     sole = foot_sole_heights(motion, model)
     return motion.translated([0.0, 0.0, floor_height - np.percentile(sole, percentile)])
+
+
+@dataclass(frozen=True)
+class StanceGrounding:
+    """Settings of :func:`stance_floor`, which follows a capture whose floor height drifts.
+
+    Attributes:
+        stance_speed: m/s. A foot is planted while its ankle and toe joints both move
+            horizontally slower than this (velocity-threshold contact detection, as gait
+            analysis detects foot contacts; a planted foot's joints barely move).
+        smoothing: s. Standard deviation of the Gaussian low-pass applied to the floor
+            estimate (half power at about 0.13 / smoothing Hz), so the correction follows drift
+            over steps and postures without adding jitter from frame-to-frame foot noise.
+        max_shift: m. The floor estimate stays within this distance of its midpoint, so the
+            root path stays within it of the source's up to one constant floor offset.
+    """
+
+    stance_speed: float = 0.2
+    smoothing: float = 0.05
+    max_shift: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in ("stance_speed", "smoothing", "max_shift"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"StanceGrounding.{name} must be a positive number, got {value}")
+
+
+def planted_feet(motion: Motion, model: mujoco.MjModel, stance_speed: float = 0.2) -> np.ndarray:
+    """(T, 2) bool: whether the left / right foot is planted (see :class:`StanceGrounding`)."""
+    kin = compute_kinematics(motion, model)
+    ids = [BODY_NAMES.index(name) for name in FEET]
+    speed = np.linalg.norm(kin.body_lin_vel[:, ids, :2], axis=-1)  # (T, 4): L ankle, L toe, R ankle, R toe
+    return np.stack([speed[:, :2].max(axis=1), speed[:, 2:].max(axis=1)], axis=1) < stance_speed
+
+
+def stance_floor(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding()) -> np.ndarray:
+    """(T,) height of the floor under the motion in each frame, estimated from its planted feet.
+
+    In a frame with a planted foot the floor is at the lowest foot point (a lower, sliding foot
+    touches the floor too); between such frames it is interpolated, and lowered wherever a foot
+    would pass below it. The estimate is clamped to ``max_shift`` around the midpoint of the
+    planted frames' heights (balancing floating against sinking where the source's feet vary
+    more than that), then low-passed. Without any planted frame the floor is constant, at the
+    5th percentile of the lowest foot point (as :func:`ground`).
+    """
+    sole = foot_sole_heights(motion, model)
+    planted = planted_feet(motion, model, config.stance_speed).any(axis=1)
+    if not planted.any():
+        return np.full(motion.num_frames, np.percentile(sole, 5.0))
+    frames = np.arange(motion.num_frames)
+    floor = np.minimum(np.interp(frames, frames[planted], sole[planted]), sole)
+    mid = (sole[planted].min() + sole[planted].max()) / 2
+    floor = np.clip(floor, mid - config.max_shift, mid + config.max_shift)
+    # A normalised Gaussian averages values inside the clamp, so the result stays inside it.
+    return gaussian_filter1d(floor, config.smoothing * motion.fps, mode="nearest")
+
+
+def ground_stance(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding(),
+                  floor_height: float = 0.0) -> Motion:
+    """Shift each frame vertically so the planted feet rest on ``floor_height`` (see :func:`stance_floor`).
+
+    Unlike :func:`ground`'s single offset, this follows a capture whose floor drifts, by a
+    low-passed correction that never departs more than ``config.max_shift`` from a constant.
+    """
+    floor = stance_floor(motion, model, config)
+    offset = np.zeros((motion.num_frames, 3))
+    offset[:, 2] = floor_height - floor
+    return replace(motion, root_pos=motion.root_pos + offset)
