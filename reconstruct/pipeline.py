@@ -1,0 +1,232 @@
+"""``crisp reconstruct``: a depth video and a human motion in, a simulation-ready clip out.
+
+Stages (paper, Algorithm 1), each timed into ``meta.json``:
+
+1. **read**: :func:`reconstruct.io.read_frames` (MegaSAM-style npz or an RGB-D folder) and
+   :func:`reconstruct.io.read_motion` (camera-frame SMPL parameters, BVH or ``motion.npz``);
+2. **align**: :func:`reconstruct.align.align` removes the person, recovers the metric scale from
+   the human, gravity from the human and the floor, and puts the floor at z = 0;
+3. **planes**: :func:`reconstruct.planes.fit_planes` turns the static scene into box primitives;
+4. **contact**: :mod:`reconstruct.contact` adds the supports the human's contacts imply and the
+   camera never saw (``--contacts kinematic`` from the motion, a file, or ``none``);
+5. **write**: the clip directory (``scene.xml``, ``motion.npz`` in the scene's frame,
+   ``primitives.json``, ``meta.json``), written to a temporary directory and renamed, so an
+   interrupted run leaves nothing half-written.
+
+Without a motion there is nothing to track: the output is a scene directory (``scene.xml``,
+``primitives.json``, ``meta.json``) and ``--metric`` is required, since the scale comes from the
+human.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import tyro
+
+from crisp_gym.clip import write_clip
+from crisp_gym.humanoid import build_humanoid
+from crisp_gym.motion import Motion, compute_kinematics
+from crisp_gym.registry import register_clip
+from crisp_gym.scene import Box, save_primitives, write_scene_xml
+from reconstruct.align import AlignConfig, Alignment, align
+from reconstruct.contact import (
+    CompletionResult,
+    ContactConfig,
+    body_geometry,
+    complete_support,
+    filter_contacts,
+    kinematic_contacts,
+    load_external_contacts,
+)
+from reconstruct.frames import Frames
+from reconstruct.io import MotionInput, read_frames, read_motion
+from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Every setting of the pipeline, one frozen dataclass per stage (defaults: the paper's)."""
+
+    align: AlignConfig = field(default_factory=AlignConfig)
+    planes: PlaneFitConfig = field(default_factory=PlaneFitConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """What :func:`reconstruct` returns.
+
+    Attributes:
+        boxes: the scene: planar primitives, then contact primitives.
+        motion: the motion in the scene's frame (``None`` without one).
+        alignment: how the input was brought into the world.
+        planes: the planar fit with its diagnostics.
+        completion: the contact completion (``None`` with ``contacts="none"`` or no motion).
+        timings: seconds per stage.
+    """
+
+    boxes: list[Box]
+    motion: Motion | None
+    alignment: Alignment
+    planes: PlaneFit
+    completion: CompletionResult | None
+    timings: dict[str, float]
+
+    def meta(self) -> dict:
+        """The JSON-ready provenance for ``meta.json``."""
+        counts = {"planar": sum(b.source == "planar" for b in self.boxes),
+                  "contact": sum(b.source == "contact" for b in self.boxes)}
+        meta = {
+            "source": "reconstruct",
+            "scale": self.alignment.scale,
+            "alignment": self.alignment.to_json(),
+            "timings": {k: round(v, 3) for k, v in self.timings.items()},
+            "counts": counts | {"segments": self.planes.segments, "groups": self.planes.groups,
+                                "dropped_points": self.planes.dropped},
+            "plane_timings": {k: round(v, 3) for k, v in self.planes.timings.items()},
+        }
+        if self.completion is not None:
+            meta["contact_primitives"] = self.completion.meta()
+            meta["contacts"] = {"supported": self.completion.supported, "dropped": self.completion.dropped}
+        return meta
+
+
+ContactSource = Literal["kinematic", "none"] | Path
+
+
+def contact_completion(motion: Motion, boxes: list[Box], source: ContactSource, cfg: ContactConfig,
+                       vertex_map: Path | None = None) -> CompletionResult | None:
+    """Supports the motion's contacts need and ``boxes`` lack (``None`` for ``source="none"``)."""
+    if isinstance(source, str) and source == "none":
+        return None
+    geometry = body_geometry(motion)
+    if isinstance(source, str) and source == "kinematic":
+        evidence = kinematic_contacts(motion, cfg.kinematic, geometry)
+    else:
+        evidence = load_external_contacts(source, motion, vertex_map, cfg.vertex_quantile)
+    contacts = filter_contacts(evidence, motion, cfg.filter, geometry)
+    return complete_support(contacts, boxes, cfg.completion)
+
+
+def reconstruct(frames: Frames, motion: MotionInput | None = None, config: ReconstructConfig | None = None,
+                contacts: ContactSource = "kinematic", metric: bool = False, vertex_map: Path | None = None,
+                progress: bool = True) -> Reconstruction:
+    """Run align → planes → contact on frames already read (see the module docstring)."""
+    cfg = config or ReconstructConfig()
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    aligned = align(frames, motion, cfg.align, metric=metric)
+    timings["align"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    pelvis = None
+    if aligned.motion is not None:
+        pelvis = compute_kinematics(aligned.motion, build_humanoid()).body_pos[:, 0]
+    planes = fit_planes(aligned.frames, pelvis, cfg.planes, progress=progress)
+    timings["planes"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    completion = None
+    if aligned.motion is not None:
+        completion = contact_completion(aligned.motion, planes.boxes, contacts, cfg.contact, vertex_map)
+    timings["contact"] = time.perf_counter() - start
+    boxes = list(planes.boxes) + ([] if completion is None else list(completion.boxes))
+    return Reconstruction(boxes=boxes, motion=aligned.motion, alignment=aligned.alignment, planes=planes,
+                          completion=completion, timings=timings)
+
+
+def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bool = False) -> Path:
+    """A scene-only directory (no motion): ``scene.xml``, ``primitives.json``, ``meta.json``, atomically."""
+    directory = Path(directory)
+    if directory.exists() and not overwrite:
+        raise FileExistsError(f"{directory} exists; pass overwrite=True (--overwrite) to replace it")
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+    try:
+        write_scene_xml(boxes, tmp / "scene.xml")
+        save_primitives(boxes, tmp / "primitives.json")
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
+        if directory.exists():
+            shutil.rmtree(directory)
+        tmp.rename(directory)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return directory
+
+
+@dataclass
+class ReconstructArgs:
+    """Reconstruct a simulation-ready clip from a depth video and the human's motion."""
+
+    input: tyro.conf.Positional[Path]
+    """MegaSAM-style npz (depths, intrinsic, cam_c2w[, images, masks]) or an RGB-D folder (TUM / Redwood)."""
+    motion: Path | None = None
+    """The human's motion: camera-frame SMPL parameters (GVHMR-style npz/.pt), a BVH or a motion.npz."""
+    motion_frame: Literal["camera", "camera0"] = "camera"
+    """Frame of SMPL parameters: each frame in its own camera ("camera", GVHMR's incam) or all in the first."""
+    name: str | None = None
+    """Clip name (default: the input's stem)."""
+    output: Annotated[Path | None, tyro.conf.arg(aliases=["-o"])] = None
+    """Output directory (default: ./clips/NAME)."""
+    contacts: str = "kinematic"
+    """Contact source: "kinematic" (from the motion), "none", or a contacts file (contacts.npz or per-vertex npz)."""
+    vertex_map: Path | None = None
+    """For per-vertex contact files: an npz with ``vertex_body`` (6890,) mapping SMPL vertices to bodies."""
+    metric: bool = False
+    """Trust the depth as metres (required without --motion)."""
+    register: bool = False
+    """Add the clip to the user registry under NAME."""
+    overwrite: bool = False
+    """Replace an existing output directory."""
+
+
+def run(args: ReconstructArgs) -> Path:
+    """Read, reconstruct and write; returns the output directory."""
+    name = args.name or args.input.stem
+    out = Path(args.output) if args.output is not None else Path("clips") / name
+    if out.exists() and not args.overwrite:
+        raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+    contacts: ContactSource = args.contacts if args.contacts in ("kinematic", "none") else Path(args.contacts)
+    if isinstance(contacts, Path) and not contacts.is_file():
+        raise FileNotFoundError(f"--contacts {contacts}: expected 'kinematic', 'none' or an existing contacts file")
+
+    start = time.perf_counter()
+    frames = read_frames(args.input)
+    motion = None if args.motion is None else read_motion(args.motion, frame=args.motion_frame)
+    read_time = time.perf_counter() - start
+    result = reconstruct(frames, motion, contacts=contacts, metric=args.metric, vertex_map=args.vertex_map)
+    meta = result.meta() | {"name": name, "input": str(args.input.resolve()),
+                            "motion_input": None if args.motion is None else str(args.motion.resolve()),
+                            "contact_source": str(args.contacts), "fps": frames.fps,
+                            "frames": frames.num_frames, "image_size": list(frames.image_size)}
+    meta["timings"] = {"read": round(read_time, 3)} | meta["timings"]
+
+    if result.motion is None:
+        write_scene_dir(out, result.boxes, meta, overwrite=args.overwrite)
+        print(f"wrote scene '{name}' ({len(result.boxes)} primitives) to {out}")
+        return out
+    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite)
+    counts = meta["counts"]
+    print(f"wrote clip '{name}': {counts['planar']} planar + {counts['contact']} contact primitives, "
+          f"scale {result.alignment.scale:.3f}, to {out}")
+    if args.register:
+        print(f"registered in {register_clip(name, out, tags=['reconstructed'])}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = tyro.cli(ReconstructArgs, args=argv, prog="crisp reconstruct")
+    try:
+        run(args)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"crisp reconstruct: {err}")
+        return 2
+    return 0

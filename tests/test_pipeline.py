@@ -1,0 +1,118 @@
+"""``crisp reconstruct`` end to end on small synthetic videos with known ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
+from crisp_gym.clip import load_clip_dir
+from crisp_gym.metrics import support_tops
+from reconstruct import pipeline
+from reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
+
+
+@pytest.fixture(scope="module")
+def stairs_input(tmp_path_factory) -> Path:
+    video = render_synth_video(SynthSpec("stairs_up", seed=3), SynthVideoConfig(width=160, height=120), progress=False)
+    return write_synth_input(tmp_path_factory.mktemp("synth") / "stairs", video)
+
+
+def _args(source: Path, out: Path, **kwargs) -> pipeline.ReconstructArgs:
+    return pipeline.ReconstructArgs(input=source / "input.npz", motion=source / "motion_camera.npz", output=out,
+                                    **kwargs)
+
+
+def _gt_from_recon(recon_pelvis: np.ndarray, gt_pelvis: np.ndarray) -> np.ndarray:
+    """(4, 4) yaw + translation taking the reconstruction's world onto the truth's, fitted on the
+    pelvis paths (the world's heading and horizontal origin are a free choice of the pipeline)."""
+    a, b = recon_pelvis[:, :2] - recon_pelvis[:, :2].mean(0), gt_pelvis[:, :2] - gt_pelvis[:, :2].mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    rot = (u @ vt).T
+    if np.linalg.det(rot) < 0:
+        rot = (u @ np.diag([1.0, -1.0]) @ vt).T
+    out = np.eye(4)
+    out[:2, :2] = rot
+    out[:2, 3] = gt_pelvis[:, :2].mean(0) - rot @ recon_pelvis[:, :2].mean(0)
+    return out
+
+
+def test_reconstructed_stairs_support_the_true_treads(stairs_input, tmp_path):
+    out = pipeline.run(_args(stairs_input, tmp_path / "clip"))
+    clip = load_clip_dir(out)
+    truth = load_ground_truth(stairs_input)
+    meta = json.loads((out / "meta.json").read_text())
+    assert set(meta["timings"]) >= {"read", "align", "planes", "contact"}
+    assert meta["scale"] == pytest.approx(truth.scale, rel=0.03)
+
+    # the pelvis paths agree up to the world's free heading and origin
+    to_gt = _gt_from_recon(clip.motion.root_pos, truth.motion.root_pos)
+    recon_root = clip.motion.root_pos @ to_gt[:3, :3].T + to_gt[:3, 3]
+    assert np.median(np.linalg.norm(recon_root - truth.motion.root_pos, axis=1)) < 0.05
+
+    # every true tread has a reconstructed surface near its height above its centre (at this
+    # test's 160x120 within 4 cm; benchmarks/recon_quality.py measures full-size accuracy)
+    true_tops = [b for b in truth.boxes if b.top_height() > 0.05 and b.name != "floor"]
+    assert true_tops, "the stairs scene must have raised treads"
+    centres = np.array([b.center[:2] for b in true_tops])
+    back = np.linalg.inv(to_gt)  # query the reconstruction at the treads' centres, in its own frame
+    query = np.c_[centres, np.zeros(len(centres))] @ back[:3, :3].T + back[:3, 3]
+    tops = support_tops(query[:, :2], clip.boxes)
+    error = np.nanmin(np.abs(tops - np.array([b.top_height() for b in true_tops])[:, None]), axis=1)
+    assert error.max() < 0.04, error
+
+    env = gym.make("CrispTrack-v0", clip=str(out))
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    assert np.all(np.isfinite(obs["proprio"] if isinstance(obs, dict) else obs))
+    env.close()
+
+
+def test_no_person_visible_is_a_clear_error(stairs_input, tmp_path):
+    with np.load(stairs_input / "input.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["masks"] = np.zeros_like(arrays["masks"])
+    np.savez(tmp_path / "input.npz", **arrays)
+    args = pipeline.ReconstructArgs(input=tmp_path / "input.npz", motion=stairs_input / "motion_camera.npz",
+                                    output=tmp_path / "clip")
+    with pytest.raises(ValueError, match="person"):
+        pipeline.run(args)
+    assert not (tmp_path / "clip").exists()
+
+
+def test_missing_key_is_a_clear_error(stairs_input, tmp_path):
+    with np.load(stairs_input / "input.npz") as data:
+        arrays = {k: data[k] for k in data.files if k != "cam_c2w"}
+    np.savez(tmp_path / "input.npz", **arrays)
+    with pytest.raises(ValueError, match="cam_c2w"):
+        pipeline.run(pipeline.ReconstructArgs(input=tmp_path / "input.npz", output=tmp_path / "clip", metric=True))
+
+
+def test_interrupted_run_leaves_no_clip(stairs_input, tmp_path, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("crisp_gym.clip.save_primitives", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run(_args(stairs_input, tmp_path / "clip"))
+    assert not (tmp_path / "clip").exists()
+    assert not any(p.name.startswith(".clip") for p in tmp_path.iterdir())
+
+
+def test_without_motion_writes_a_metric_scene(stairs_input, tmp_path):
+    with np.load(stairs_input / "input.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    scale = load_ground_truth(stairs_input).scale
+    arrays["depths"] = arrays["depths"].astype(np.float32) * scale
+    arrays["cam_c2w"] = arrays["cam_c2w"].copy()
+    arrays["cam_c2w"][:, :3, 3] *= scale
+    np.savez(tmp_path / "input.npz", **arrays)
+    out = pipeline.run(pipeline.ReconstructArgs(input=tmp_path / "input.npz", output=tmp_path / "scene", metric=True))
+    assert sorted(p.name for p in out.iterdir()) == ["meta.json", "primitives.json", "scene.xml"]
+    boxes = json.loads((out / "primitives.json").read_text())
+    assert boxes and all(b["source"] == "planar" for b in boxes)
