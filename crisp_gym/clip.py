@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +19,10 @@ from crisp_gym.motion import Motion
 from crisp_gym.scene import Box, load_primitives, save_primitives, write_scene_xml
 
 CLIP_FILES = ("scene.xml", "motion.npz", "primitives.json", "meta.json")
+SCENE_KINDS = ("boxes", "heightfield", "convex_pieces", "dense_mesh")
+"""``meta.json["scene_kind"]``: what ``scene.xml`` holds (absent means ``"boxes"``). Only box
+scenes have primitives; the others (``reconstruct.baselines``) bring their geometry in
+``scene.xml`` and the files it references, inside the clip directory."""
 
 
 @dataclass(frozen=True)
@@ -44,12 +49,19 @@ class Clip:
     def scene_xml(self) -> Path:
         return self.path / "scene.xml"
 
+    @property
+    def scene_kind(self) -> str:
+        """One of :data:`SCENE_KINDS`; ``"boxes"`` for clips whose meta does not say."""
+        return str(self.meta.get("scene_kind", "boxes"))
+
 
 def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: dict | None = None,
-               overwrite: bool = False) -> Path:
+               overwrite: bool = False, write_scene: Callable[[Path], None] | None = None) -> Path:
     """Write a clip directory atomically and return its path.
 
     ``meta`` is completed with the motion's ``fps``, ``num_frames`` and the primitive counts.
+    ``write_scene``, for scenes that are not boxes, writes ``scene.xml`` and the files it
+    references into the directory being built (its argument) instead of the boxes' scene.
     """
     directory = Path(directory)
     if directory.exists() and not overwrite:
@@ -62,7 +74,10 @@ def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: di
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
     try:
-        write_scene_xml(boxes, tmp / "scene.xml")
+        if write_scene is None:
+            write_scene_xml(boxes, tmp / "scene.xml")
+        else:
+            write_scene(tmp)
         motion.save(tmp / "motion.npz")
         save_primitives(boxes, tmp / "primitives.json")
         (tmp / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
@@ -90,5 +105,7 @@ def load_clip_dir(directory: str | Path) -> Clip:
         raise FileNotFoundError(f"{directory} is not a complete clip: missing {missing} "
                                 f"(a clip holds {list(CLIP_FILES)})")
     meta = json.loads((directory / "meta.json").read_text())
+    if meta.get("scene_kind", "boxes") not in SCENE_KINDS:
+        raise ValueError(f"{directory}/meta.json: scene_kind must be one of {SCENE_KINDS}, got {meta['scene_kind']!r}")
     return Clip(path=directory, boxes=load_primitives(directory / "primitives.json"),
                 motion=Motion.load(directory / "motion.npz"), meta=meta)

@@ -76,6 +76,14 @@ class Box:
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
         return self.center + (signs * self.half_size) @ self.rotation.T
 
+    def transformed(self, world_from_old: np.ndarray) -> Box:
+        """The same box moved by a rigid (4, 4) transform."""
+        m = np.asarray(world_from_old, dtype=float)
+        if m.shape != (4, 4):
+            raise ValueError(f"world_from_old must be (4, 4), got {m.shape}")
+        return Box(center=m[:3, :3] @ self.center + m[:3, 3], rotation=m[:3, :3] @ self.rotation,
+                   half_size=self.half_size, source=self.source, name=self.name)
+
     def top_height(self) -> float:
         """Highest z of the box."""
         return float(self.corners()[:, 2].max())

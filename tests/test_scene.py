@@ -82,3 +82,13 @@ def test_clip_write_is_atomic_and_registry_resolves(tmp_path):
     (path / "meta.json").unlink()
     with pytest.raises(FileNotFoundError, match="meta.json"):
         load_clip_dir(path)
+
+
+def test_transformed_box_moves_its_corners_rigidly():
+    box = Box(center=[1.0, 2.0, 0.5], rotation=Rotation.from_euler("z", 0.3).as_matrix(), half_size=[0.2, 0.4, 0.1])
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_euler("xyz", [0.1, -0.2, 1.0]).as_matrix()
+    m[:3, 3] = [0.5, -1.0, 2.0]
+    moved = box.transformed(m)
+    np.testing.assert_allclose(moved.corners(), box.corners() @ m[:3, :3].T + m[:3, 3], atol=1e-12)
+    assert moved.source == box.source and moved.name == box.name

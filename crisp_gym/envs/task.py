@@ -14,6 +14,7 @@ import numpy as np
 from crisp_gym.clip import Clip
 from crisp_gym.envs import tracking
 from crisp_gym.envs.config import TrackConfig
+from crisp_gym.mjcf_scene import scene_surface
 from crisp_gym.motion import humanoid_body_ids, humanoid_qpos_adr
 from crisp_gym.registry import load_clip
 
@@ -24,13 +25,18 @@ class TrackingTask:
     def __init__(self, clip: str | os.PathLike | Clip, config: TrackConfig):
         self.clip = clip if isinstance(clip, Clip) else load_clip(clip)
         self.config = config
-        self.model = tracking.build_track_model(self.clip.boxes, timestep=1.0 / config.sim_hz)
+        # Box scenes come from their primitives; other scenes bring their geometry in scene.xml.
+        scene_xml = None if self.clip.scene_kind == "boxes" else self.clip.scene_xml
+        self.model = tracking.build_track_model(self.clip.boxes, timestep=1.0 / config.sim_hz, scene_xml=scene_xml)
         if humanoid_qpos_adr(self.model) != 0:
             raise ValueError("the humanoid's free joint must come first in the composed model")
         self.body_ids = humanoid_body_ids(self.model)
         self.reference = tracking.Reference.from_motion(self.clip.motion, self.model, config.control_hz)
         self.ranges = tracking.hinge_ranges()
-        self.points = tracking.scene_samples(self.clip.boxes, self.reference, config) if config.scene_aware else None
+        self.points = None
+        if config.scene_aware:
+            self.points = (tracking.scene_samples(self.clip.boxes, self.reference, config) if scene_xml is None
+                           else tracking.mesh_scene_samples(scene_surface(scene_xml), self.reference, config))
         if self.points is not None and len(self.points) == 0:
             raise ValueError("scene_aware=True but the scene has no surface within point_radius of the motion")
 

@@ -25,13 +25,16 @@ key                    content                                                  
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
+import trimesh
 
 from crisp_gym.envs import quat
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg
+from crisp_gym.mjcf_scene import attach_scene, surface_points
 from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.scene import Box, add_boxes, sample_surface_points
 
@@ -41,14 +44,25 @@ TARGET_DIM = NUM_BODIES * (6 + 6 + 3 + 3)
 REWARD_TERMS = ("pos", "rot", "vel", "ang_vel", "height", "energy")
 
 
-def build_track_model(boxes: list[Box], timestep: float) -> mujoco.MjModel:
-    """The humanoid composed with the scene's boxes, plus a camera that follows the pelvis."""
+def build_track_spec(boxes: list[Box], timestep: float, scene_xml: Path | None = None) -> mujoco.MjSpec:
+    """The humanoid composed with the scene's boxes, plus a camera that follows the pelvis.
+
+    ``scene_xml``, for a clip whose scene is not boxes, adds that file's geometry (meshes,
+    heightfields) as well.
+    """
     spec = build_humanoid_spec(HumanoidConfig(timestep=timestep))
     add_boxes(spec, boxes)
+    if scene_xml is not None:
+        attach_scene(spec, scene_xml)
     spec.worldbody.add_light(name="key", pos=(0, 0, 5), dir=(0, 0, -1), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
     spec.body("Pelvis").add_camera(name="follow", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
                                    pos=(0.0, -3.5, 0.6), xyaxes=(1, 0, 0, 0, 0.17, 1))
-    return spec.compile()
+    return spec
+
+
+def build_track_model(boxes: list[Box], timestep: float, scene_xml: Path | None = None) -> mujoco.MjModel:
+    """Compile :func:`build_track_spec`: the model ``CrispTrack-v0`` simulates."""
+    return build_track_spec(boxes, timestep, scene_xml).compile()
 
 
 @dataclass(frozen=True)
@@ -208,10 +222,26 @@ def sample_start_frames(rng: np.random.Generator, count: int, num_frames: int, c
 def scene_samples(boxes: list[Box], ref: Reference, cfg: TrackConfig) -> np.ndarray:
     """(P, 3) surface samples of the scene within ``point_radius`` of the pelvis path."""
     points, _ = sample_surface_points(_cropped(boxes, ref.body_pos[:, 0], cfg.point_radius), cfg.point_spacing)
+    return _near_path(points, ref.body_pos[:, 0], cfg.point_radius)
+
+
+def mesh_scene_samples(surface: trimesh.Trimesh, ref: Reference, cfg: TrackConfig) -> np.ndarray:
+    """(P, 3) samples of a triangulated scene surface within ``point_radius`` of the pelvis path."""
     path = ref.body_pos[:, 0]
+    lo, hi = path[:, :2].min(0) - cfg.point_radius, path[:, :2].max(0) + cfg.point_radius
+    corners = surface.vertices[surface.faces][..., :2]  # (F, 3, 2): keep faces touching the path's box
+    keep = np.all(corners.max(1) >= lo, axis=1) & np.all(corners.min(1) <= hi, axis=1)
+    if not keep.any():
+        return np.zeros((0, 3))
+    return _near_path(surface_points(surface.submesh([np.flatnonzero(keep)], append=True), cfg.point_spacing),
+                      path, cfg.point_radius)
+
+
+def _near_path(points: np.ndarray, path: np.ndarray, radius: float) -> np.ndarray:
+    """The ``points`` within ``radius`` (horizontally) of the pelvis ``path``."""
     step = max(1, len(path) // 200)
     d = np.min(np.linalg.norm(points[:, None, :2] - path[None, ::step, :2], axis=-1), axis=1)
-    return points[d <= cfg.point_radius]
+    return points[d <= radius]
 
 
 def _cropped(boxes: list[Box], path: np.ndarray, radius: float) -> list[Box]:
