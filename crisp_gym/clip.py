@@ -1,7 +1,8 @@
 """Clip directories: a scene and a motion that belong together.
 
-A clip directory holds ``scene.xml`` (MJCF, boxes only), ``motion.npz``, ``primitives.json``
-and ``meta.json`` (provenance, fps, scale, timings, counts). :func:`write_clip` builds the
+A clip directory holds ``scene.xml`` (MJCF of the static scene: the boxes of
+``primitives.json``, or for the TSDF baselines a heightfield or meshes, see ``scene_kind``),
+``motion.npz``, ``primitives.json`` and ``meta.json`` (provenance, fps, scale, timings, counts). :func:`write_clip` builds the
 directory under a temporary name and renames it into place, so an interrupted run never
 leaves a half-written clip.
 """

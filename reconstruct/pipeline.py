@@ -71,6 +71,8 @@ class Reconstruction:
         planes: the planar fit with its diagnostics.
         completion: the contact completion (``None`` with ``contacts="none"`` or no motion).
         timings: seconds per stage.
+        frames: the aligned input (metric, in the scene's frame, person removed), e.g. for a
+            baseline fused from the same depth.
     """
 
     boxes: list[Box]
@@ -79,6 +81,7 @@ class Reconstruction:
     planes: PlaneFit
     completion: CompletionResult | None
     timings: dict[str, float]
+    frames: Frames
 
     def meta(self) -> dict:
         """The JSON-ready provenance for ``meta.json``."""
@@ -140,7 +143,7 @@ def reconstruct(frames: Frames, motion: MotionInput | None = None, config: Recon
     timings["contact"] = time.perf_counter() - start
     boxes = list(planes.boxes) + ([] if completion is None else list(completion.boxes))
     return Reconstruction(boxes=boxes, motion=aligned.motion, alignment=aligned.alignment, planes=planes,
-                          completion=completion, timings=timings)
+                          completion=completion, timings=timings, frames=aligned.frames)
 
 
 def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bool = False) -> Path:

@@ -13,6 +13,7 @@ import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
 from crisp_gym.clip import load_clip_dir
 from crisp_gym.metrics import support_tops
 from reconstruct import pipeline
+from reconstruct.metrics import heading_alignment
 from reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
 
 
@@ -27,20 +28,6 @@ def _args(source: Path, out: Path, **kwargs) -> pipeline.ReconstructArgs:
                                     **kwargs)
 
 
-def _gt_from_recon(recon_pelvis: np.ndarray, gt_pelvis: np.ndarray) -> np.ndarray:
-    """(4, 4) yaw + translation taking the reconstruction's world onto the truth's, fitted on the
-    pelvis paths (the world's heading and horizontal origin are a free choice of the pipeline)."""
-    a, b = recon_pelvis[:, :2] - recon_pelvis[:, :2].mean(0), gt_pelvis[:, :2] - gt_pelvis[:, :2].mean(0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    rot = (u @ vt).T
-    if np.linalg.det(rot) < 0:
-        rot = (u @ np.diag([1.0, -1.0]) @ vt).T
-    out = np.eye(4)
-    out[:2, :2] = rot
-    out[:2, 3] = gt_pelvis[:, :2].mean(0) - rot @ recon_pelvis[:, :2].mean(0)
-    return out
-
-
 def test_reconstructed_stairs_support_the_true_treads(stairs_input, tmp_path):
     out = pipeline.run(_args(stairs_input, tmp_path / "clip"))
     clip = load_clip_dir(out)
@@ -50,7 +37,7 @@ def test_reconstructed_stairs_support_the_true_treads(stairs_input, tmp_path):
     assert meta["scale"] == pytest.approx(truth.scale, rel=0.03)
 
     # the pelvis paths agree up to the world's free heading and origin
-    to_gt = _gt_from_recon(clip.motion.root_pos, truth.motion.root_pos)
+    to_gt = heading_alignment(clip.motion.root_pos, truth.motion.root_pos)
     recon_root = clip.motion.root_pos @ to_gt[:3, :3].T + to_gt[:3, 3]
     assert np.median(np.linalg.norm(recon_root - truth.motion.root_pos, axis=1)) < 0.05
 
@@ -116,3 +103,14 @@ def test_without_motion_writes_a_metric_scene(stairs_input, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["meta.json", "primitives.json", "scene.xml"]
     boxes = json.loads((out / "primitives.json").read_text())
     assert boxes and all(b["source"] == "planar" for b in boxes)
+
+
+def test_heading_alignment_recovers_a_yaw_and_shift():
+    rng = np.random.default_rng(0)
+    path = np.cumsum(rng.normal(size=(50, 3)) * [0.05, 0.05, 0.0], axis=0) + [0.0, 0.0, 0.9]
+    yaw = 0.7
+    truth = np.eye(4)
+    truth[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    truth[:2, 3] = [1.5, -2.0]
+    moved = path @ truth[:3, :3].T + truth[:3, 3]
+    np.testing.assert_allclose(heading_alignment(path, moved), truth, atol=1e-9)
