@@ -1,0 +1,492 @@
+"""Reconstruction inputs: depth videos as :class:`~reconstruct.frames.Frames`, and the human motion.
+
+Depth videos (:func:`read_frames` picks the reader from the path):
+
+* a MegaSAM-style ``.npz`` (:func:`read_megasam_npz`): ``depths`` (T, H, W), possibly float16
+  and up to an unknown scale; ``intrinsic`` (3, 3); ``cam_c2w`` (T, 4, 4) (OpenCV camera →
+  world); optional ``images`` (T, H, W, 3) uint8, ``masks`` (T, H, W) (person = 1) and ``fps``
+  (else 30). A folder holding an ``input.npz`` (what ``crisp synth`` writes) reads that file.
+* an RGB-D folder (:func:`read_rgbd_folder`) in the TUM layout (``rgb.txt`` and ``depth.txt``
+  listing ``timestamp path``, 16-bit depth PNGs in units of 1/5000 m, optional
+  ``groundtruth.txt`` with ``timestamp tx ty tz qx qy qz qw`` camera → world) or the Redwood
+  layout (``color/`` or ``image/`` and ``depth/`` folders of images paired in name order, depth in
+  mm, optional ``*.log`` trajectory of camera → world matrices). Intrinsics come from an
+  ``intrinsic.json`` (Open3D's format: ``width``, ``height``, column-major
+  ``intrinsic_matrix``, optional ``depth_scale``) or a ``camera.txt`` (``fx fy cx cy
+  [depth_scale]``), else the layout's default camera (TUM freiburg1, or Open3D's PrimeSense
+  default for Redwood), both given for 640×480 and scaled to the image size. Without poses
+  the camera is tracked by Open3D's RGB-D odometry, frame to frame.
+
+Human motion (:func:`read_motion`, for ``--motion``) comes back as a :class:`MotionInput`
+that says which frame it is in: ``motion.npz`` and BVH are in a z-up world of their own;
+GVHMR-style SMPL parameters (``global_orient``, ``body_pose`` (63 or 69), ``transl``; an npz, or
+GVHMR's ``.pt`` results with ``smpl_params_incam``) are in the camera frame: OpenCV axes
+(x right, y down, z forward), metres, frame ``t`` in camera ``t``'s frame as GVHMR's
+``smpl_params_incam`` are (``frame="camera0"`` reads them as all in the first camera's frame
+instead). :mod:`reconstruct.align` brings a camera-frame motion into the world.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import imageio.v3 as iio
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation, Slerp
+from tqdm import tqdm
+
+from crisp_gym.humanoid import BODY_NAMES
+from crisp_gym.motion import Motion, hinge_angles_to_rotations
+from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS, load_smpl_params
+from reconstruct.frames import Frames
+
+log = logging.getLogger(__name__)
+
+DEFAULT_FPS = 30.0
+"""Frame rate assumed when an input does not say."""
+
+TUM_FR1_INTRINSIC = (517.3, 516.5, 318.6, 255.3)
+"""fx, fy, cx, cy of the TUM RGB-D freiburg1 colour camera at 640×480 (the TUM benchmark's calibration)."""
+
+PRIMESENSE_INTRINSIC = (525.0, 525.0, 319.5, 239.5)
+"""fx, fy, cx, cy of Open3D's ``PrimeSenseDefault`` at 640×480 (the Redwood datasets' camera)."""
+
+TUM_DEPTH_SCALE = 5000.0
+"""TUM depth PNG units per metre."""
+
+REDWOOD_DEPTH_SCALE = 1000.0
+"""Redwood depth PNG units per metre (millimetres)."""
+
+SMPL_PELVIS_OFFSET = (0.0, -0.223, 0.028)
+"""SMPL's rest pelvis joint relative to the model origin for the mean shape (m, SMPL axes: y up,
+z forward), approximately. SMPL rotates the body about this joint, so the pelvis is at
+``transl + offset`` in the parameters' frame; a body shape other than the mean moves it by a few cm."""
+
+MotionFrame = Literal["world", "camera", "camera0"]
+
+_SMPL_KEYS = ("global_orient", "body_pose", "transl")
+
+
+# --------------------------------------------------------------------------- MegaSAM npz
+
+
+def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise FileNotFoundError(f"no {what} at {path}")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, EOFError, ValueError) as err:
+        raise ValueError(f"{path} is not a readable npz without pickles ({err}); expected a {what}") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path} holds a single array; expected a {what}")
+    with data:
+        return {k: data[k] for k in data.files}
+
+
+def read_megasam_npz(path: str | Path) -> Frames:
+    """A MegaSAM-style npz as :class:`Frames` (keys in the module docstring)."""
+    path = Path(path)
+    data = _load_npz(path, "MegaSAM-style npz (depths, intrinsic, cam_c2w)")
+    missing = [k for k in ("depths", "intrinsic", "cam_c2w") if k not in data]
+    if missing:
+        raise ValueError(f"{path} lacks {missing}; a MegaSAM-style npz holds depths (T, H, W), intrinsic (3, 3), "
+                         f"cam_c2w (T, 4, 4) and optionally images, masks, fps; found {sorted(data)}")
+    depths = data["depths"]
+    if depths.ndim != 3 or not np.issubdtype(depths.dtype, np.floating):
+        raise ValueError(f"{path}: depths must be a float (T, H, W) array, got {depths.dtype} {depths.shape}")
+    t, h, w = depths.shape
+    intrinsic = np.asarray(data["intrinsic"], dtype=np.float64)
+    if intrinsic.shape != (3, 3):
+        raise ValueError(f"{path}: intrinsic must be (3, 3), got {intrinsic.shape}")
+    poses = np.asarray(data["cam_c2w"], dtype=np.float64)
+    if poses.shape != (t, 4, 4):
+        raise ValueError(f"{path}: cam_c2w must be ({t}, 4, 4) to match depths {depths.shape}, got {poses.shape}")
+    bad = ~np.isfinite(poses).all(axis=(1, 2))
+    if bad.any():
+        raise ValueError(f"{path}: cam_c2w has NaN or infinite values in {int(bad.sum())} frames "
+                         f"(first: frame {int(np.argmax(bad))})")
+    rgb = data.get("images")
+    if rgb is not None and (rgb.shape != (t, h, w, 3) or rgb.dtype != np.uint8):
+        raise ValueError(f"{path}: images must be uint8 ({t}, {h}, {w}, 3), got {rgb.dtype} {rgb.shape}")
+    masks = data.get("masks")
+    if masks is not None:
+        if masks.shape != (t, h, w):
+            raise ValueError(f"{path}: masks must be ({t}, {h}, {w}) with person = 1, got {masks.shape}")
+        masks = masks > 0.5 if np.issubdtype(masks.dtype, np.floating) else masks.astype(bool)
+    fps = float(np.asarray(data["fps"]).reshape(())) if "fps" in data else DEFAULT_FPS
+    try:
+        return Frames(depth=depths, intrinsic=intrinsic, cam_c2w=poses, fps=fps, rgb=rgb, person_mask=masks)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
+
+
+# --------------------------------------------------------------------------- RGB-D folders
+
+
+@dataclass(frozen=True)
+class RgbdFolderConfig:
+    """Reading an RGB-D folder and, when it has no poses, tracking the camera.
+
+    Attributes:
+        max_time_difference: TUM colour and depth frames farther apart than this (s) are not
+            paired (the TUM tools' default).
+        depth_min, depth_max: depths the odometry uses (m); Open3D's default maximum of 4 m is
+            the range where a structured-light sensor's depth is reliable.
+        depth_diff_max: largest depth difference of corresponding pixels the odometry accepts (m,
+            Open3D's default).
+        max_failures: largest fraction of frame pairs whose odometry may fail (each failure
+            repeats the previous frame-to-frame motion) before the folder is rejected.
+    """
+
+    max_time_difference: float = 0.02
+    depth_min: float = 0.1
+    depth_max: float = 4.0
+    depth_diff_max: float = 0.03
+    max_failures: float = 0.1
+
+
+def _read_list(path: Path) -> list[tuple[float, list[str]]]:
+    """``timestamp value...`` lines of a TUM text file, comments skipped."""
+    rows = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        try:
+            rows.append((float(parts[0]), parts[1:]))
+        except ValueError:
+            raise ValueError(f"{path}:{number}: expected 'timestamp ...', got {line!r}") from None
+    if not rows:
+        raise ValueError(f"{path} lists no frames")
+    return rows
+
+
+def _pair_by_time(depth_times: np.ndarray, rgb_times: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
+    """(depth index, rgb index) pairs of nearest timestamps within ``max_dt``, each used once."""
+    order = np.argsort(rgb_times)
+    sorted_rgb = rgb_times[order]
+    pos = np.clip(np.searchsorted(sorted_rgb, depth_times), 1, len(sorted_rgb) - 1) if len(sorted_rgb) > 1 \
+        else np.zeros(len(depth_times), int)
+    left, right = np.maximum(pos - 1, 0), pos
+    nearest = np.where(np.abs(sorted_rgb[left] - depth_times) <= np.abs(sorted_rgb[right] - depth_times), left, right)
+    dt = np.abs(sorted_rgb[nearest] - depth_times)
+    pairs: dict[int, tuple[float, int]] = {}
+    for i in np.flatnonzero(dt <= max_dt):
+        j = int(order[nearest[i]])
+        if j not in pairs or dt[i] < pairs[j][0]:
+            pairs[j] = (float(dt[i]), int(i))
+    return sorted((i, j) for j, (_, i) in pairs.items())
+
+
+def _tum_poses(path: Path, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera → world poses interpolated at ``times`` and which times the trajectory covers."""
+    rows = _read_list(path)
+    stamps = np.array([r[0] for r in rows])
+    try:
+        values = np.array([[float(x) for x in r[1][:7]] for r in rows])
+    except ValueError:
+        raise ValueError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines") from None
+    if values.shape[1] != 7:
+        raise ValueError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines")
+    order = np.argsort(stamps)
+    stamps, values = stamps[order], values[order]
+    inside = (times >= stamps[0]) & (times <= stamps[-1])
+    t = times[inside]
+    poses = np.tile(np.eye(4), (len(t), 1, 1))
+    poses[:, :3, 3] = np.stack([np.interp(t, stamps, values[:, i]) for i in range(3)], axis=1)
+    if len(stamps) > 1:
+        poses[:, :3, :3] = Slerp(stamps, Rotation.from_quat(values[:, 3:7]))(t).as_matrix()
+    else:
+        poses[:, :3, :3] = Rotation.from_quat(values[0, 3:7]).as_matrix()
+    return poses, inside
+
+
+def _folder_camera(folder: Path, default: tuple[float, float, float, float], default_scale: float,
+                   width: int, height: int) -> tuple[np.ndarray, float]:
+    """(K, depth units per metre) from ``intrinsic.json`` / ``camera.txt``, else the scaled default."""
+    json_path, txt_path = folder / "intrinsic.json", folder / "camera.txt"
+    if json_path.is_file():
+        try:
+            info = json.loads(json_path.read_text())
+            k = np.asarray(info["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T  # column-major
+            size = (int(info["width"]), int(info["height"]))
+        except (KeyError, ValueError, TypeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{json_path}: expected Open3D's intrinsic JSON (width, height, column-major "
+                             f"intrinsic_matrix of 9 numbers): {err}") from None
+        if size != (width, height):
+            raise ValueError(f"{json_path} is for {size[0]}x{size[1]} images but the depth images are {width}x{height}")
+        return k, float(info.get("depth_scale", default_scale))
+    if txt_path.is_file():
+        lines = [ln.split() for ln in txt_path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+        try:
+            numbers = [float(x) for x in lines[0]]
+        except (IndexError, ValueError):
+            numbers = []
+        if len(numbers) not in (4, 5):
+            raise ValueError(f"{txt_path}: expected one line 'fx fy cx cy [depth_scale]'")
+        fx, fy, cx, cy = numbers[:4]
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), numbers[4] if len(numbers) == 5 else default_scale
+    fx, fy, cx, cy = default
+    sx, sy = width / 640.0, height / 480.0
+    return np.array([[fx * sx, 0, (cx + 0.5) * sx - 0.5], [0, fy * sy, (cy + 0.5) * sy - 0.5], [0, 0, 1.0]]), \
+        default_scale
+
+
+def _read_image(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"the {what} image {path} is missing")
+    return iio.imread(path)
+
+
+def _load_images(color_paths: list[Path], depth_paths: list[Path], depth_scale: float,
+                 progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    depth, rgb = [], []
+    for c, d in tqdm(list(zip(color_paths, depth_paths)), desc="read", unit="frame", disable=not progress):
+        raw = _read_image(d, "depth")
+        if raw.ndim != 2 or raw.dtype != np.uint16:
+            raise ValueError(f"{d}: depth images must be single-channel 16-bit PNGs, got {raw.dtype} {raw.shape}")
+        colour = _read_image(c, "colour")
+        if colour.ndim == 2:
+            colour = np.repeat(colour[..., None], 3, axis=2)
+        colour = colour[..., :3]
+        if colour.shape[:2] != raw.shape or colour.dtype != np.uint8:
+            raise ValueError(f"{c}: colour must be 8-bit and the depth image's size {raw.shape}, "
+                             f"got {colour.dtype} {colour.shape}")
+        depth.append(raw.astype(np.float32) / np.float32(depth_scale))
+        rgb.append(colour)
+    return np.stack(depth), np.stack(rgb)
+
+
+def rgbd_odometry(depth: np.ndarray, rgb: np.ndarray, intrinsic: np.ndarray, config: RgbdFolderConfig | None = None,
+                  progress: bool = True) -> np.ndarray:
+    """(T, 4, 4) camera → world poses (first camera = world) chained from Open3D's frame-to-frame
+    RGB-D odometry (hybrid photometric and geometric term).
+
+    Each pair starts from the previous pair's motion (a constant-velocity guess); a failed pair
+    repeats it. More than ``config.max_failures`` failed pairs raise a ``ValueError``.
+    """
+    cfg = config or RgbdFolderConfig()
+    t, h, w = depth.shape
+    camera = o3d.camera.PinholeCameraIntrinsic(w, h, intrinsic[0, 0], intrinsic[1, 1], intrinsic[0, 2], intrinsic[1, 2])
+    option = o3d.pipelines.odometry.OdometryOption(depth_diff_max=cfg.depth_diff_max, depth_min=cfg.depth_min,
+                                                   depth_max=cfg.depth_max)
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd(k: int) -> o3d.geometry.RGBDImage:
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(rgb[k])), o3d.geometry.Image(np.ascontiguousarray(depth[k])),
+            depth_scale=1.0, depth_trunc=cfg.depth_max, convert_rgb_to_intensity=True)
+
+    poses = np.tile(np.eye(4), (t, 1, 1))
+    motion = np.eye(4)  # camera k-1 ← camera k
+    failures = 0
+    target = rgbd(0)
+    for k in tqdm(range(1, t), desc="odometry", unit="frame", disable=not progress):
+        source = rgbd(k)
+        ok, trans, _ = o3d.pipelines.odometry.compute_rgbd_odometry(source, target, camera, motion, jacobian, option)
+        if not ok:
+            ok, trans, _ = o3d.pipelines.odometry.compute_rgbd_odometry(source, target, camera, np.eye(4),
+                                                                        jacobian, option)
+        if ok:
+            motion = trans
+        else:
+            failures += 1
+        poses[k] = poses[k - 1] @ motion
+        target = source
+    if failures > cfg.max_failures * max(t - 1, 1):
+        raise ValueError(f"RGB-D odometry failed on {failures} of {t - 1} frame pairs; the folder needs a "
+                         "trajectory (groundtruth.txt or *.log), or frames with more overlap and texture")
+    if failures:
+        log.warning("RGB-D odometry failed on %d of %d frame pairs (constant motion assumed there)", failures, t - 1)
+    return poses
+
+
+def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, progress: bool = True) -> Frames:
+    """A TUM- or Redwood-layout RGB-D folder as metric :class:`Frames` (see the module docstring)."""
+    cfg = config or RgbdFolderConfig()
+    folder = Path(path)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no RGB-D folder at {folder}")
+    poses: np.ndarray | None = None
+    fps = DEFAULT_FPS
+    if (folder / "depth.txt").is_file() and (folder / "rgb.txt").is_file():
+        depth_rows, rgb_rows = _read_list(folder / "depth.txt"), _read_list(folder / "rgb.txt")
+        depth_times = np.array([r[0] for r in depth_rows])
+        pairs = _pair_by_time(depth_times, np.array([r[0] for r in rgb_rows]), cfg.max_time_difference)
+        if not pairs:
+            raise ValueError(f"{folder}: no colour frame within {cfg.max_time_difference} s of any depth frame")
+        times = depth_times[[i for i, _ in pairs]]
+        depth_paths = [folder / depth_rows[i][1][0] for i, _ in pairs]
+        color_paths = [folder / rgb_rows[j][1][0] for _, j in pairs]
+        if (folder / "groundtruth.txt").is_file():
+            poses, inside = _tum_poses(folder / "groundtruth.txt", times)
+            if not inside.any():
+                raise ValueError(f"{folder}/groundtruth.txt covers none of the frames' timestamps")
+            if not inside.all():
+                log.warning("%s: %d frames outside the ground-truth trajectory's time span are dropped",
+                            folder, int((~inside).sum()))
+            depth_paths = [p for p, keep in zip(depth_paths, inside) if keep]
+            color_paths = [p for p, keep in zip(color_paths, inside) if keep]
+            times = times[inside]
+        if len(times) > 1:
+            fps = float(1.0 / np.median(np.diff(times)))
+        default, default_scale = TUM_FR1_INTRINSIC, TUM_DEPTH_SCALE
+    elif (folder / "depth").is_dir():
+        colour_dir = next((folder / n for n in ("color", "image", "rgb") if (folder / n).is_dir()), None)
+        if colour_dir is None:
+            raise ValueError(f"{folder}: a Redwood-layout folder needs color/ (or image/) next to depth/")
+        depth_paths = sorted(p for p in (folder / "depth").iterdir() if p.suffix.lower() == ".png")
+        color_paths = sorted(p for p in colour_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        if not depth_paths or len(depth_paths) != len(color_paths):
+            raise ValueError(f"{folder}: depth/ has {len(depth_paths)} PNGs and {colour_dir.name}/ "
+                             f"{len(color_paths)} images; they must pair one to one (and not be empty)")
+        logs = sorted(folder.glob("*.log"))
+        if logs:
+            trajectory = o3d.io.read_pinhole_camera_trajectory(str(logs[0]))
+            if len(trajectory.parameters) != len(depth_paths):
+                raise ValueError(f"{logs[0]} has {len(trajectory.parameters)} poses for {len(depth_paths)} frames")
+            poses = np.stack([np.linalg.inv(p.extrinsic) for p in trajectory.parameters])
+        default, default_scale = PRIMESENSE_INTRINSIC, REDWOOD_DEPTH_SCALE
+    else:
+        raise ValueError(f"{folder} is neither a TUM folder (rgb.txt, depth.txt) nor a Redwood folder "
+                         "(color/ and depth/)")
+    first = _read_image(depth_paths[0], "depth")
+    intrinsic, depth_scale = _folder_camera(folder, default, default_scale, first.shape[1], first.shape[0])
+    depth, rgb = _load_images(color_paths, depth_paths, depth_scale, progress)
+    if poses is None:
+        poses = rgbd_odometry(depth, rgb, intrinsic, cfg, progress)
+    try:
+        return Frames(depth=depth, intrinsic=intrinsic, cam_c2w=poses, fps=fps, rgb=rgb)
+    except ValueError as err:
+        raise ValueError(f"{folder}: {err}") from None
+
+
+def read_frames(path: str | Path, progress: bool = True) -> Frames:
+    """Any supported depth video: an npz file, a folder holding ``input.npz``, or an RGB-D folder."""
+    path = Path(path)
+    if path.is_file():
+        if path.suffix.lower() != ".npz":
+            raise ValueError(f"{path}: a depth-video file must be a MegaSAM-style .npz")
+        return read_megasam_npz(path)
+    if path.is_dir():
+        if (path / "input.npz").is_file():
+            return read_megasam_npz(path / "input.npz")
+        return read_rgbd_folder(path, progress=progress)
+    raise FileNotFoundError(f"no depth video at {path} (expected an .npz or an RGB-D folder)")
+
+
+# --------------------------------------------------------------------------- human motion
+
+
+@dataclass(frozen=True)
+class MotionInput:
+    """A human motion and the frame it is expressed in.
+
+    Attributes:
+        motion: the humanoid motion (metres).
+        frame: ``"world"`` (a z-up world unrelated to the video), ``"camera"`` (frame t in camera
+            t's OpenCV frame, as GVHMR's ``smpl_params_incam``) or ``"camera0"`` (every frame in
+            the first camera's OpenCV frame).
+        source: the file it was read from.
+    """
+
+    motion: Motion
+    frame: MotionFrame
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if self.frame not in ("world", "camera", "camera0"):
+            raise ValueError(f"frame must be 'world', 'camera' or 'camera0', got {self.frame!r}")
+
+
+def _read_smpl_source(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a motion npz, or flat SMPL parameter arrays from a GVHMR ``.pt``
+    (``smpl_params_incam`` preferred)."""
+    if path.suffix.lower() == ".npz":
+        return _load_npz(path, "motion npz (motion.npz or SMPL parameters)")
+    import torch
+
+    try:
+        content = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, OSError, EOFError, ValueError, pickle.UnpicklingError) as err:
+        raise ValueError(f"{path} is not a readable torch file of tensors ({err})") from None
+    if isinstance(content, dict) and isinstance(content.get("smpl_params_incam"), dict):
+        content = content["smpl_params_incam"]
+    if not isinstance(content, dict):
+        raise ValueError(f"{path} must hold a dict of SMPL parameters (or GVHMR's results with smpl_params_incam)")
+    return {k: np.asarray(v.numpy() if hasattr(v, "numpy") else v) for k, v in content.items()}
+
+
+def read_motion(path: str | Path, *, fps: float | None = None, up_axis: str = "y",
+                frame: MotionFrame = "camera", pelvis_offset=SMPL_PELVIS_OFFSET) -> MotionInput:
+    """A human motion for ``--motion``: ``motion.npz``, BVH, or camera-frame SMPL parameters.
+
+    ``fps`` overrides the file's frame rate (SMPL files without ``fps`` default to 30);
+    ``up_axis`` is a BVH's up axis. SMPL parameters are read as camera-frame (``frame`` is
+    ``"camera"`` or ``"camera0"``, see :class:`MotionInput`) with the pelvis at
+    ``transl + pelvis_offset`` (:data:`SMPL_PELVIS_OFFSET`); they are not grounded, since the
+    floor is not known yet.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no motion file at {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".bvh":
+        from crisp_gym.bvh import load_bvh
+
+        return MotionInput(load_bvh(path, up_axis=up_axis, target_fps=fps), "world", str(path))
+    if suffix not in (".npz", ".pt", ".pth"):
+        raise ValueError(f"{path}: unsupported motion file {suffix!r}; expected motion.npz, .bvh, or SMPL "
+                         "parameters (.npz / GVHMR .pt)")
+    params = _read_smpl_source(path)
+    if "dof_pos" in params:
+        motion = Motion.load(path)
+        return MotionInput(motion.resample(fps) if fps else motion, "world", str(path))
+    if frame not in ("camera", "camera0"):
+        raise ValueError(f"SMPL parameters are read in a camera frame: frame must be 'camera' or 'camera0', got {frame!r}")
+    missing = [k for k in _SMPL_KEYS if k not in params]
+    if missing:
+        raise ValueError(f"{path}: an npz motion needs motion.npz keys (dof_pos, ...) or SMPL keys "
+                         f"{list(_SMPL_KEYS)}; missing {missing}, found {sorted(params)}")
+    offset = np.asarray(pelvis_offset, dtype=float)
+    if offset.shape != (3,):
+        raise ValueError(f"pelvis_offset must have 3 entries, got {offset.shape}")
+    params = dict(params)
+    transl = np.asarray(params["transl"], dtype=float)
+    if transl.ndim == 2 and transl.shape[1] == 3:
+        params["transl"] = transl + offset
+    try:
+        motion = load_smpl_params(params, fps=fps, up_axis="z", to_floor=False)  # "z": keep the camera's axes
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
+    return MotionInput(motion, frame, str(path))
+
+
+def save_camera_smpl(motion: Motion, path: str | Path, pelvis_offset=SMPL_PELVIS_OFFSET) -> Path:
+    """Write a camera-frame ``motion`` as GVHMR-style SMPL parameters (the inverse of :func:`read_motion`).
+
+    ``global_orient`` (T, 3) and ``body_pose`` (T, 69) axis-angle, ``transl`` (T, 3) = pelvis −
+    ``pelvis_offset``, ``fps``; all in the motion's (camera) frame. Written atomically.
+    """
+    m = motion.in_humanoid_order()
+    t = m.num_frames
+    c = SMPL_TO_OURS
+    local = np.empty((t, len(BODY_NAMES), 3, 3))
+    local[:, 0] = Rotation.from_quat(m.root_quat, scalar_first=True).as_matrix() @ c
+    local[:, 1:] = c.T @ hinge_angles_to_rotations(m.dof_pos.reshape(t, -1, 3)) @ c
+    smpl = np.stack([local[:, BODY_NAMES.index(SMPL_TO_BODY[j])] for j in SMPL_JOINT_NAMES], axis=1)
+    rotvecs = Rotation.from_matrix(smpl.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
+                 transl=m.root_pos - np.asarray(pelvis_offset, dtype=float), fps=np.float64(m.fps))
+    tmp.replace(path)
+    return path
