@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
-from scipy.ndimage import maximum_filter, minimum_filter
+from scipy.ndimage import gaussian_filter1d, maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -55,8 +55,13 @@ class AlignConfig:
         scale_frames: at most this many frames (evenly spread over those with a person) vote.
         mad_threshold: per-frame scales farther than this many robust standard deviations
             (1.4826 × MAD) from the median are outliers.
-        camera0_iterations: fixed-point iterations of the scale for a motion given in the first
-            camera's frame (placing it in later cameras needs the scale).
+        drift_seconds: when > 0, the per-frame scales (outliers dropped, interpolated between the
+            voting frames, Gaussian-smoothed over this many seconds) also correct each frame's
+            depth by its ratio to the clip's scale: a monocular depth network's scale drifts
+            from frame to frame, and the person measures that drift where it matters. The
+            camera translations keep the one clip-wide scale. 0 keeps a single scale.
+        camera0_iterations: at most this many fixed-point iterations of the scale for a motion
+            given in the first camera's frame (placing it in later cameras needs the scale).
         human_height: stature of the humanoid rendered for the scale (m); the scale is only as
             right as this (the paper's cue: a typical human's size is known).
         floor_frames: frames (evenly spread) whose points are searched for the floor.
@@ -89,8 +94,9 @@ class AlignConfig:
     mask_erosion_px: int = 1
     min_person_pixels: int = 30
     scale_frames: int = 60
+    drift_seconds: float = 0.5
     mad_threshold: float = 3.0
-    camera0_iterations: int = 4
+    camera0_iterations: int = 6
     human_height: float = 1.70
     floor_frames: int = 30
     floor_pixel_stride: int = 4
@@ -254,6 +260,22 @@ def estimate_scale(frames: Frames, motion_camera: Motion, config: AlignConfig | 
     return scale, {"scale_per_frame": dict(zip(used, [round(s, 5) for s in per_frame])),
                    "scale_frames_used": int(keep.sum()), "scale_frames_rejected": int((~keep).sum()),
                    "scale_spread": float(mad / median)}
+
+
+def depth_drift(per_frame: dict[int, float], scale: float, num_frames: int, fps: float,
+                config: AlignConfig | None = None) -> np.ndarray:
+    """(T,) per-frame depth factors: each frame's scale from the person (``per_frame``, frame →
+    scale, as in :func:`estimate_scale`'s diagnostics) relative to the clip's ``scale``, with
+    outliers dropped, interpolated over all frames and smoothed (``config.drift_seconds``)."""
+    cfg = config or AlignConfig()
+    if cfg.drift_seconds <= 0 or len(per_frame) < 2:
+        return np.ones(num_frames)
+    frames = np.array(sorted(per_frame))
+    scales = np.array([per_frame[t] for t in frames])
+    mad = 1.4826 * float(np.median(np.abs(scales - scale)))
+    keep = np.abs(scales - scale) <= cfg.mad_threshold * max(mad, 1e-3 * scale)
+    ratio = np.interp(np.arange(num_frames), frames[keep], scales[keep] / scale)
+    return gaussian_filter1d(ratio, sigma=cfg.drift_seconds * fps, mode="nearest")
 
 
 # --------------------------------------------------------------------------- floor and gravity
@@ -450,12 +472,14 @@ def align(frames: Frames, motion: MotionInput | None = None, config: AlignConfig
             scale, found = estimate_scale(frames, motion.motion, cfg, mesher)
             diagnostics.update(found)
         else:
-            # Placing a first-camera motion in camera t needs the scale: start from the first
-            # frames (short baselines barely depend on it), then iterate on all frames.
-            scale, _ = estimate_scale(frames.subset(slice(0, min(10, frames.num_frames))),
-                                      motion.motion.slice(0, min(10, frames.num_frames)), cfg, mesher)
+            # Placing a first-camera motion in camera t needs the scale (of the camera baselines):
+            # start with the cameras' rotations alone (scale 0), then iterate to the fixed point.
+            scale = 0.0
             for _ in range(cfg.camera0_iterations):
+                previous = scale
                 scale, found = estimate_scale(frames, _in_cameras(motion, frames, scale), cfg, mesher)
+                if abs(scale - previous) < 1e-4 * scale:
+                    break
             diagnostics.update(found)
         motion_cam = _in_cameras(motion, frames, scale)
         up_prior = human_up(motion_cam, frames, mesher.model)
@@ -464,6 +488,10 @@ def align(frames: Frames, motion: MotionInput | None = None, config: AlignConfig
         scale = 1.0
         up_prior, tolerance, source = camera_up(frames), cfg.camera_up_tolerance_deg, "camera+floor"
     metric_frames = removed.scaled(scale)
+    if "scale_per_frame" in diagnostics:
+        drift = depth_drift(diagnostics["scale_per_frame"], scale, frames.num_frames, frames.fps, cfg)
+        metric_frames = replace(metric_frames, depth=metric_frames.depth * drift[:, None, None].astype(np.float32))
+        diagnostics["depth_drift_range"] = [float(drift.min()), float(drift.max())]
     poses = metric_frames.cam_c2w
     cameras = poses[:, :3, 3]
     if motion_cam is None:
@@ -475,10 +503,10 @@ def align(frames: Frames, motion: MotionInput | None = None, config: AlignConfig
         except ValueError:  # no floor in view near the person: its tilt from farther away, its height from the feet
             normal, offset, found = fit_floor(metric_frames, up_prior, tolerance, np.concatenate([pelvis, cameras]),
                                               cfg.camera_floor_radius, cfg)
-            found["floor_frames"] = 0
+            found |= {"floor_frames": 0, "floor_search": "near the cameras"}
     diagnostics.update(found)
     diagnostics["up_prior"] = up_prior.tolist()
-    origin = poses[0, :3, 3] if motion_cam is None else poses[0, :3, :3] @ motion_cam.root_pos[0] + poses[0, :3, 3]
+    origin = cameras[0] if motion_cam is None else pelvis[0]
     world_from_input = _world_frame(normal, offset, origin, poses[0, :3, 2])
     world_motion = None
     diagnostics["floor_height_source"] = "scene"

@@ -32,9 +32,10 @@ def _geom_template(geom_type: int, size: np.ndarray) -> trimesh.Trimesh:
     raise ValueError(f"the humanoid has a geom of type {geom_type}; only capsules, boxes and spheres are meshed")
 
 
-def pixel_rays(intrinsic: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(H, W, 3) camera-frame ray directions with unit z (pixel centres at integer u, v, as OpenCV)."""
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+def pixel_rays(intrinsic: np.ndarray, width: int, height: int, u0: int = 0, v0: int = 0) -> np.ndarray:
+    """(H, W, 3) camera-frame ray directions with unit z of the pixels ``u0 <= u < width``,
+    ``v0 <= v < height`` (pixel centres at integer u, v, as OpenCV)."""
+    u, v = np.meshgrid(np.arange(u0, width, dtype=np.float64), np.arange(v0, height, dtype=np.float64))
     return np.stack([(u - intrinsic[0, 2]) / intrinsic[0, 0], (v - intrinsic[1, 2]) / intrinsic[1, 1],
                      np.ones_like(u)], axis=-1)
 
@@ -61,7 +62,7 @@ def cast_mesh(vertices: np.ndarray, faces: np.ndarray, intrinsic: np.ndarray, ca
             return depth, normals, triangle
     else:  # straddles the image plane: its projection is unbounded
         u0, v0, u1, v1 = 0, 0, width, height
-    dirs = pixel_rays(intrinsic, width, height)[v0:v1, u0:u1] @ rot.T  # camera z = 1: t_hit is z-depth
+    dirs = pixel_rays(intrinsic, u1, v1, u0, v0) @ rot.T  # camera z = 1: t_hit is z-depth
     rays = np.concatenate([np.broadcast_to(eye, dirs.shape), dirs], axis=-1).astype(np.float32)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))

@@ -23,6 +23,7 @@ ground truth (or the reconstruction) that lies in the region of interest.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -213,7 +214,7 @@ def support_coverage(recon: Geometry, gt: list[Box], distance: float = 0.03, min
 def primitive_count(recon: Geometry) -> int:
     """Number of primitives: boxes for a box scene, triangles for a mesh."""
     if isinstance(recon, trimesh.Trimesh):
-        return int(len(recon.faces))
+        return len(recon.faces)
     return len(_check_boxes(recon, "recon"))
 
 
@@ -236,16 +237,18 @@ def _geom_surface(model: mujoco.MjModel, geom: int, spacing: float, rng: np.rand
     return np.asarray(points)
 
 
-def _signed_distance(points: np.ndarray, scene: Geometry) -> np.ndarray:
-    """(N,) signed distance to the scene's solids (negative inside)."""
+def _signed_distance(scene: Geometry) -> Callable[[np.ndarray], np.ndarray]:
+    """A function: (N, 3) points → (N,) signed distance to the scene's solids (negative inside)."""
     if isinstance(scene, trimesh.Trimesh):
         if not scene.is_watertight:
             raise ValueError("non-penetration needs a closed (watertight) mesh to tell inside from outside")
         raycast = o3d.t.geometry.RaycastingScene()
         raycast.add_triangles(o3d.core.Tensor(np.asarray(scene.vertices, dtype=np.float32)),
                               o3d.core.Tensor(np.asarray(scene.faces, dtype=np.uint32)))
-        return raycast.compute_signed_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(float)
-    return box_signed_distance(points, _check_boxes(scene, "scene"))
+        return lambda points: raycast.compute_signed_distance(
+            o3d.core.Tensor(points.astype(np.float32))).numpy().astype(float)
+    boxes = _check_boxes(scene, "scene")
+    return lambda points: box_signed_distance(points, boxes)
 
 
 def non_penetration(scene: Geometry, motion: Motion, model: mujoco.MjModel | None = None,
@@ -268,6 +271,7 @@ def non_penetration(scene: Geometry, motion: Motion, model: mujoco.MjModel | Non
         raise ValueError(f"motion must be a crisp_gym.motion.Motion, got {type(motion).__name__}")
     if not spacing > 0 or not tolerance >= 0:
         raise ValueError(f"spacing must be positive and tolerance >= 0, got {spacing}, {tolerance}")
+    signed_distance = _signed_distance(scene)
     model = model or build_humanoid()
     data = mujoco.MjData(model)
     rng = np.random.default_rng(seed)
@@ -282,7 +286,7 @@ def non_penetration(scene: Geometry, motion: Motion, model: mujoco.MjModel | Non
         mujoco.mj_kinematics(model, data)
         points = np.concatenate([data.geom_xpos[g] + p @ data.geom_xmat[g].reshape(3, 3).T
                                  for g, p in zip(geoms, local)])
-        sdf = _signed_distance(points, scene)
+        sdf = signed_distance(points)
         outside[k] = np.mean(sdf >= -tolerance)
         depth[k] = max(0.0, -float(sdf.min()))
     return NonPenetration(vertex_score=float(outside.mean()), frame_score=float(np.mean(outside == 1.0)),

@@ -33,6 +33,7 @@ with person pixels removed (depth 0), and optionally the pelvis path (N, 3) of t
 from __future__ import annotations
 
 import heapq
+import itertools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -212,7 +213,7 @@ class PlaneFitConfig:
         offsets = tuple(self.association_offsets)
         if not offsets or any(not isinstance(k, (int, np.integer)) or k < 1 for k in offsets):
             raise ValueError(f"PlaneFitConfig.association_offsets must be positive frame offsets, got {offsets!r}")
-        object.__setattr__(self, "association_offsets", tuple(sorted(set(int(k) for k in offsets))))
+        object.__setattr__(self, "association_offsets", tuple(sorted({int(k) for k in offsets})))
 
 
 @dataclass(frozen=True)
@@ -275,7 +276,7 @@ class _Grid:
 
 
 def _block_stride(width: int, cfg: PlaneFitConfig) -> int:
-    return max(1, int(round(width / cfg.grid_width)))
+    return max(1, round(width / cfg.grid_width))
 
 
 def _frame_grid(frames: Frames, t: int, rays: np.ndarray, stride: int, cfg: PlaneFitConfig,
@@ -293,7 +294,9 @@ def _frame_grid(frames: Frames, t: int, rays: np.ndarray, stride: int, cfg: Plan
         dropped["depth_percentile"] += int(far.sum())
     z = np.where(valid, depth, 0.0).astype(np.float32)
     # INTER_AREA at an integer factor is the exact block mean; divide by the valid fraction.
-    area = lambda image: cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)  # noqa: E731
+    def area(image: np.ndarray) -> np.ndarray:
+        return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+
     fraction = area(valid.astype(np.float32))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = area(z[..., None] * rays[:h * stride, :w * stride]) / fraction[..., None]
@@ -599,7 +602,7 @@ def _merge_planes(planes: list[_Plane], cfg: PlaneFitConfig) -> list[_Plane]:
         normal = _snap((np.stack([m.normal for m in members]) * weights[:, None]).sum(axis=0), cfg)
         points = np.concatenate([m.points for m in members])
         merged.append(_Plane(normal=normal, offset=float(np.median(points @ normal)), points=points,
-                             frames=sum(m.frames for m in members), groups=sum((m.groups for m in members), [])))
+                             frames=sum(m.frames for m in members), groups=[g for m in members for g in m.groups]))
     return merged
 
 
@@ -609,7 +612,7 @@ def _merge_planes(planes: list[_Plane], cfg: PlaneFitConfig) -> list[_Plane]:
 def _occupancy(ab: np.ndarray, cfg: PlaneFitConfig) -> tuple[np.ndarray, np.ndarray]:
     """Occupancy grid of 2D points, closed (far and grazing surfaces are sampled sparsely) and
     cleaned of specks; and each point's cell in it, (-1, -1) for points in removed specks."""
-    pad = int(round(cfg.footprint_closing / cfg.footprint_cell))
+    pad = round(cfg.footprint_closing / cfg.footprint_cell)
     cells = _cells(ab, cfg.footprint_cell)
     cells -= cells.min(axis=0) - pad
     occ = np.zeros(cells.max(axis=0) + 1 + pad, dtype=np.uint8)
@@ -746,7 +749,7 @@ def _pelvis_tree(pelvis_path: np.ndarray, spacing: float = 0.05) -> cKDTree:
     if not np.all(np.isfinite(path)):
         raise ValueError("pelvis_path contains NaN or infinite values")
     pieces = [path[:1]]
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in itertools.pairwise(path):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
         pieces.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
     return cKDTree(np.concatenate(pieces))
@@ -772,7 +775,8 @@ def _segment_video(frames: Frames, tree: cKDTree | None, cfg: PlaneFitConfig, rn
     """Stages 1 and 2: per-frame segments, and their links to the segments of earlier frames."""
     stride = _block_stride(frames.image_size[1], cfg)
     rays = frames.rays().astype(np.float32)
-    seg_frame, seg_size, seg_normal, seg_centroid, cell_points, cell_ids, links = [], [], [], [], [], [], []
+    seg_frame, seg_size, seg_normal, seg_centroid, links = [], [], [], [], []
+    cell_points, cell_ids = [], []
     recent: dict[int, _Seen] = {}
     total = 0
     for t in tqdm(range(frames.num_frames), desc="planes: frames", unit="frame", disable=not progress):
@@ -880,6 +884,8 @@ def _group_planes(seg: _Segmented, cameras: np.ndarray, cfg: PlaneFitConfig,
     for g in np.flatnonzero(fitted):
         cells = order[bounds[g]:bounds[g + 1]]
         members = points[cells]
+        if cfg.frame_scale_correction > 0:  # drift spread the raw points: RANSAC again on corrected ones
+            normal[g] = _ransac_normal(members, normal[g], cfg, rng)
         height = members @ normal[g]
         segments, local = np.unique(seg.ids[cells], return_inverse=True)
         by_segment = np.lexsort((height, local))

@@ -12,9 +12,7 @@ from crisp_gym.scene import Box, floor_box
 from reconstruct.frames import Frames
 from reconstruct.planes import PlaneFitConfig, fit_planes
 from reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
-from reconstruct.synth import (
-    PlatformParams, SeatParams, StairsParams, platform_boxes, seat_boxes, stairs_boxes,
-)  # fmt: skip
+from reconstruct.synth import PlatformParams, SeatParams, StairsParams, platform_boxes, seat_boxes, stairs_boxes
 
 STAIRS = StairsParams(riser=0.15, tread=0.30, width=1.2, count=4, start=1.5, landing=1.4)
 FEW_FRAMES = PlaneFitConfig(min_group_frames=2)
@@ -91,7 +89,7 @@ def test_floor_is_one_box_with_its_top_at_zero(clean_stairs):
 
 
 def test_boxes_sit_behind_the_surface_they_were_fitted_to(clean_stairs):
-    boxes, fit = clean_stairs
+    _, fit = clean_stairs
     assert all(b.source == "planar" and np.isclose(b.half_size[2], 0.025) for b in fit.boxes)
     for b in fit.boxes:
         normal = b.rotation[:, 2]
@@ -167,7 +165,7 @@ def test_pelvis_filter_drops_what_is_far_from_the_path():
     path = np.array([[0.0, 0.0, 0.9], [2.5, 0.0, 0.9]])  # the far box is >= 3 m from it
     without = fit_planes(frames, cfg=cfg, progress=False)
     with_path = fit_planes(frames, pelvis_path=path, cfg=cfg, progress=False)
-    on_far = lambda fit: [b for b in fit.boxes  # noqa: E731
+    on_far = lambda fit: [b for b in fit.boxes
                           if abs(box_signed_distance(b.center + b.half_size[2] * b.rotation[:, 2], [far])) < 0.05]
     assert on_far(without)  # seen and fitted without the filter
     assert not on_far(with_path)
@@ -188,7 +186,7 @@ def test_depth_percentile_filter_drops_the_farthest_points():
     assert 0 < wall_pixels.sum() < 0.05 * valid.sum()  # premise: the wall is under 5 % of the pixels
     kept = fit_planes(frames, cfg=PlaneFitConfig(min_group_frames=2, depth_percentile=100.0), progress=False)
     cut = fit_planes(frames, cfg=PlaneFitConfig(min_group_frames=2), progress=False)
-    on_wall = lambda fit: [b for b in fit.boxes if b.rotation[0, 2] < -0.999 and b.center[0] > 8.0]  # noqa: E731
+    on_wall = lambda fit: [b for b in fit.boxes if b.rotation[0, 2] < -0.999 and b.center[0] > 8.0]
     assert len(on_wall(kept)) == 1 and not on_wall(cut)
     assert kept.dropped["depth_percentile"] == 0
     assert cut.dropped["depth_percentile"] == pytest.approx(0.05 * valid.sum(), rel=0.1)

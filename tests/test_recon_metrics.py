@@ -9,9 +9,16 @@ import trimesh
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.scene import Box, floor_box
 from reconstruct.metrics import (
-    chamfer_gt_to_recon, chamfer_recon_to_gt, chamfer_two_way, distance_to, non_penetration, primitive_count,
-    sample_surface, support_coverage, surface_mesh,
-)  # fmt: skip
+    chamfer_gt_to_recon,
+    chamfer_recon_to_gt,
+    chamfer_two_way,
+    distance_to,
+    non_penetration,
+    primitive_count,
+    sample_surface,
+    support_coverage,
+    surface_mesh,
+)
 from reconstruct.raycast import box_mesh
 from reconstruct.synth import StairsParams, stairs_boxes
 from tests.conftest import sway_motion
