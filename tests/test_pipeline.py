@@ -19,7 +19,7 @@ from reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_tru
 
 @pytest.fixture(scope="module")
 def stairs_input(tmp_path_factory) -> Path:
-    video = render_synth_video(SynthSpec("stairs_up", seed=3), SynthVideoConfig(width=160, height=120), progress=False)
+    video = render_synth_video(SynthSpec("stairs_up", seed=3), SynthVideoConfig(width=240, height=180), progress=False)
     return write_synth_input(tmp_path_factory.mktemp("synth") / "stairs", video)
 
 
@@ -42,7 +42,7 @@ def test_reconstructed_stairs_support_the_true_treads(stairs_input, tmp_path):
     assert np.median(np.linalg.norm(recon_root - truth.motion.root_pos, axis=1)) < 0.05
 
     # every true tread has a reconstructed surface near its height above its centre (at this
-    # test's 160x120 within 4 cm; benchmarks/recon_quality.py measures full-size accuracy)
+    # test's 240x180 within 4 cm; benchmarks/recon_quality.py measures full-size accuracy)
     true_tops = [b for b in truth.boxes if b.top_height() > 0.05 and b.name != "floor"]
     assert true_tops, "the stairs scene must have raised treads"
     centres = np.array([b.center[:2] for b in true_tops])
