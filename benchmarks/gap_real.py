@@ -54,12 +54,19 @@ def go2(out: Path) -> None:
     sel = res["selected"] or res["closest"]
     print(f"\nGo2: verdict {res['verdict']}, {sel['effect']}; held-out RMS {res['gap_before']:.4f} -> "
           f"{sel['gap_heldout']:.4f} rad (floor {res['noise_floor']:.4f}); {res['seconds']:.0f} s\n")
+    rp = res["_replay"]
+    r0 = (rp["pred_before"] - rp["target"]) * rp["mask"][..., None]
+    before = dict(zip(res["joints"], np.sqrt(np.sum(r0**2, axis=(0, 1)) / rp["mask"].sum())))
+    singles = [r for r in res["ranking"] if "+" not in r["effect"]]
     print("| joint | PD tracking lag, sim vs command (ms) | real vs command (ms) | transport delay, real vs sim (ms) | "
-          "gap before (rad) | after (rad) |")
-    print("|---|---|---|---|---|---|")
+          "held-out gap before (rad) | dominant single effect | after (rad) | shrink |")
+    print("|---|---|---|---|---|---|---|---|")
     for j, v in res["where"]["per_joint"].items():
+        dom = min(singles, key=lambda r: r["gap_heldout_per_joint"][j])
+        after = dom["gap_heldout_per_joint"][j]
         print(f"| {j} | {1e3 * v['lag_sim_vs_command_s']:.1f} | {1e3 * v['lag_real_vs_command_s']:.1f} | "
-              f"{1e3 * v['lag_real_vs_sim_s']:.1f} | {v['rms_pos']:.4f} | {sel['per_joint_gap_after'][j]:.4f} |")
+              f"{1e3 * v['lag_real_vs_sim_s']:.1f} | {before[j]:.4f} | {dom['effect']} | {after:.4f} | "
+              f"{100 * (1 - after / before[j]):.0f} % |")
     print("\n| rank | effect | params | held-out gap | shrink |\n|---|---|---|---|---|")
     for i, r in enumerate(res["ranking"][:8], 1):
         print(f"| {i} | {r['effect']} | {r['nparam']} | {r['gap_heldout']:.4f} | {100 * r['shrink']:.0f} % |")

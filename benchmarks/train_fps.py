@@ -1,8 +1,8 @@
 """End-to-end PPO training throughput, scene-blind and scene-aware, and where the time goes.
 
-Each variant runs :func:`train.ppo.train` for ``warmup + iterations`` iterations (the warm-up
-ones, which include the normaliser-only first batch, are not counted) and splits the
-wall-clock time of the measured iterations into:
+Each variant runs :func:`train.ppo.train` for ``--warmup`` iterations (not counted; they
+include the normaliser-only first batch), then for enough iterations to collect ``--frames``
+frames, and splits the wall-clock time of the measured iterations into:
 
 * physics: ``mujoco.batch`` stepping, forward and reset calls;
 * observation: the rest of the env's step (controls, observations, rewards, resets);
@@ -13,6 +13,9 @@ wall-clock time of the measured iterations into:
     python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
 
 The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
+The baseline, measured first in the same run, is the CPU profile as it was before its
+networks and batch shapes were resized (scene-blind MLP actor (512, 512), critic (1024, 512),
+64 envs × 128 steps, one 8,192-sample minibatch, 2 epochs); every row also gets its ratio to it.
 """
 
 from __future__ import annotations
@@ -26,7 +29,11 @@ import torch
 import tyro
 
 from crisp_gym.registry import resolve_clip
+from train.models import ModelConfig
 from train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
+
+BASELINE = dict(num_envs=64, steps_per_env=128, minibatch_size=8192, epochs=2, scene_aware=False,
+                model=ModelConfig(actor="mlp", mlp_actor_hidden=(512, 512), critic_hidden=(1024, 512)))
 
 
 @dataclass(frozen=True)
@@ -38,8 +45,9 @@ class Args:
         profile: ``cpu`` or ``paper`` defaults for everything not set here.
         actors: actor architectures to measure.
         scene: which variants to measure (``blind``, ``aware``).
-        iterations: measured iterations per variant.
+        frames: frames measured per variant (rounded up to whole iterations).
         warmup: iterations run before measuring.
+        baseline: also measure the baseline (see the module docstring) and give ratios to it.
         num_envs: override the profile's env count (0: keep).
         steps_per_env: override the profile's roll-out length (0: keep).
         epochs: override the profile's PPO epochs (0: keep).
@@ -51,8 +59,9 @@ class Args:
     profile: str = "cpu"
     actors: tuple[str, ...] = ("mlp", "transformer")
     scene: tuple[str, ...] = ("blind", "aware")
-    iterations: int = 3
+    frames: int = 16384
     warmup: int = 2
+    baseline: bool = True
     num_envs: int = 0
     steps_per_env: int = 0
     epochs: int = 0
@@ -116,23 +125,31 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {k: v for k, v in (("num_envs", args.num_envs), ("steps_per_env", args.steps_per_env),
                                    ("epochs", args.epochs)) if v}
     print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, profile: {args.profile}")
+    variants = [("baseline", "blind", replace(base, **BASELINE))] if args.baseline else []
+    variants += [(actor, scene, replace(base, scene_aware=scene == "aware", model=replace(base.model, actor=actor),
+                                        **overrides))
+                 for actor in args.actors for scene in args.scene]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         clip = str(resolve_clip(args.clip))
-        for actor in args.actors:
-            for scene in args.scene:
-                cfg = replace(base, clip=clip, output=Path(tmp) / f"{actor}-{scene}", scene_aware=scene == "aware",
-                              model=replace(base.model, actor=actor), device=args.device, seed=args.seed,
-                              progress=False, checkpoint_every=10**9, **overrides)
-                cfg = replace(cfg, frames=(args.warmup + args.iterations) * cfg.frames_per_iteration)
-                stats = measure(cfg, args.warmup)
-                rows.append((scene, actor, cfg, stats))
-                print(f"  {scene:5s} {actor:11s} {stats['fps']:8.0f} frames/s", flush=True)
+        for name, scene, variant in variants:
+            cfg = replace(variant, clip=clip, output=Path(tmp) / f"{name}-{scene}", device=args.device,
+                          seed=args.seed, progress=False, checkpoint_every=10**9)
+            iterations = -(-args.frames // cfg.frames_per_iteration)
+            cfg = replace(cfg, frames=(args.warmup + iterations) * cfg.frames_per_iteration)
+            stats = measure(cfg, args.warmup)
+            rows.append((name, scene, cfg, stats))
+            print(f"  {scene:5s} {name:11s} {stats['fps']:8.0f} frames/s", flush=True)
+    reference = rows[0][3]["fps"] if args.baseline else None
     print()
-    print("| variant | actor | envs × steps | epochs | FPS | physics | observation | inference | update |")
-    print("|---|---|---|---|---:|---:|---:|---:|---:|")
-    for scene, actor, cfg, s in rows:
-        print(f"| scene-{scene} | {actor} | {cfg.num_envs} × {cfg.steps_per_env} | {cfg.epochs} | {s['fps']:.0f} | "
+    print("| variant | actor | critic | envs × steps | minibatch × epochs | FPS | × baseline | physics | observation "
+          "| inference | update |")
+    print("|---|---|---|---|---|---:|---:|---:|---:|---:|---:|")
+    for name, scene, cfg, s in rows:
+        actor = cfg.model.actor + (str(cfg.model.mlp_actor_hidden) if cfg.model.actor == "mlp" else "")
+        ratio = f"{s['fps'] / reference:.2f}" if reference else "–"
+        print(f"| {name if name == 'baseline' else 'scene-' + scene} | {actor} | {cfg.model.critic_hidden} | "
+              f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | {s['fps']:.0f} | {ratio} | "
               f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
     return 0
 

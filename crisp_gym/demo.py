@@ -1,107 +1,100 @@
-"""``crisp demo``: track a bundled clip in simulation and write a report and a video.
+"""``crisp demo``: evaluate the trained policy shipped for a bundled clip; write a report, plots and a video.
 
-The controller is the reference itself fed to the PD servos (zero residual), the baseline
-that a trained policy must beat; ``--policy`` evaluates a trained checkpoint instead once
-one exists. Outputs in ``--output``: ``report.json`` (success, frames tracked, errors, reward
-terms), ``tracking.png`` (per-frame error and reward terms) and ``rollout.mp4`` (the
-simulated humanoid with its reference as a green ghost).
+The policy comes from ``assets/policies/<clip>/policy.pt`` (or ``--policy``); it is evaluated
+as ``crisp eval`` does (success from reference-state-init starts and over the whole clip from
+frame 0, W-/WA-MPJPE, jitter, acceleration error). The PD-reference controller (the reference
+pose fed to the PD servos, zero residual), the baseline that the policy must beat, is evaluated
+the same way and reported as a comparison row. Clips without a shipped policy get the
+PD-reference controller alone.
+
+Outputs in ``--output``: ``report.json``, ``tracking.png`` (largest body error and reward
+terms over time), ``torques.png`` and ``rollout.mp4`` (the simulated humanoid with its
+reference as a green ghost).
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
-import gymnasium as gym
-import numpy as np
 import tyro
-from tqdm import tqdm
 
-import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
+from crisp_gym.registry import PROJECT_ROOT
+
+SHIPPED_POLICIES = PROJECT_ROOT / "assets" / "policies"
 
 
 @dataclass(frozen=True)
 class DemoArgs:
-    """Track a clip with PD control toward the reference and report how far it gets."""
+    """Track a clip with its shipped policy (and the PD-reference baseline) and report how well.
+
+    Attributes:
+        clip: registered clip name or clip directory.
+        policy: policy file, directory or training run (default: the one shipped for ``clip``).
+        output: directory for report.json, tracking.png, torques.png and rollout.mp4.
+        episodes: episodes from reference-state-init start frames per controller.
+        video: render rollout.mp4 (needs headless OpenGL: EGL or OSMesa).
+        seed: seed of the start frames.
+    """
 
     clip: str = "flat_walk"
-    """Registered clip name or clip directory."""
-    output: Annotated[Path, tyro.conf.arg(aliases=["-o"])] = Path("runs/demo")
-    """Directory for report.json, tracking.png and rollout.mp4."""
+    policy: Path | None = None
+    output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/demo")
+    episodes: int = 64
     video: bool = True
-    """Render rollout.mp4 (needs headless OpenGL: EGL or OSMesa)."""
     seed: int = 0
 
 
-def run_demo(args: DemoArgs) -> dict:
-    from crisp_gym.render import GhostRenderer
+def shipped_policy(clip: str) -> Path | None:
+    """The policy shipped in ``assets/policies`` for a clip name, if any."""
+    path = SHIPPED_POLICIES / Path(clip).name / "policy.pt"
+    return path if path.is_file() else None
 
-    env = gym.make("CrispTrack-v0", clip=args.clip, random_start=False).unwrapped
-    obs, info = env.reset(seed=args.seed, options={"start_frame": 0})
-    renderer = GhostRenderer(env.model) if args.video else None
-    frames, errors, terms = [], [info["max_body_error"]], []
-    zero = np.zeros(env.action_space.shape, dtype=np.float32)
-    total = env.task.num_frames - 1
-    success = False
-    for _ in tqdm(range(total), desc=f"tracking {args.clip}", unit="step"):
-        if renderer is not None:
-            frames.append(renderer.render(env.data, env.task.reference.qpos[env._frame]))
-        obs, reward, terminated, truncated, info = env.step(zero)
-        errors.append(info["max_body_error"])
-        terms.append(info["reward_terms"])
-        if terminated or truncated:
-            success = info["success"]
-            break
-    tracked = len(errors) - 1
-    report = {
-        "clip": args.clip, "controller": "pd_reference", "success": bool(success),
-        "frames_tracked": tracked, "frames_total": total, "seconds_tracked": tracked / env.config.control_hz,
-        "mean_max_body_error_m": float(np.mean(errors)), "final_max_body_error_m": float(errors[-1]),
-        "mean_reward_terms": {k: float(np.mean([t[k] for t in terms])) for k in terms[0]} if terms else {},
-    }
-    args.output.mkdir(parents=True, exist_ok=True)
-    _plot(errors, terms, env.config.control_hz, env.config.termination_distance, args.output / "tracking.png")
-    if renderer is not None and frames:
-        import imageio.v2 as imageio
 
-        tmp = args.output / "rollout.tmp.mp4"
-        imageio.mimwrite(tmp, frames, fps=env.config.control_hz, macro_block_size=8)
-        tmp.replace(args.output / "rollout.mp4")
-        renderer.close()
-    tmp = args.output / "report.json.tmp"
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(args.output / "report.json")
-    env.close()
+def run_demo(args: DemoArgs) -> dict[str, Any]:
+    """Evaluate, write the outputs and return the report."""
+    from train.evaluate import evaluate_policy, torch_policy, write_outputs, zero_policy
+    from train.ppo import load_policy, policy_training_stats
+
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
+    policy_path = args.policy or shipped_policy(args.clip)
+    baseline, baseline_rollout = evaluate_policy(zero_policy, args.clip, episodes=args.episodes, seed=args.seed,
+                                                 render=args.video and policy_path is None)
+    baseline = {"controller": "pd_reference", **baseline}
+    if policy_path is None:
+        print(f"no policy shipped for {args.clip!r}: evaluating the PD-reference controller alone")
+        report, rollout = {"clip": args.clip, **baseline}, baseline_rollout
+    else:
+        actor, cfg = load_policy(policy_path)
+        metrics, rollout = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
+                                           seed=args.seed, scene_aware=cfg.scene_aware, render=args.video)
+        report = {"clip": args.clip, "controller": "policy", "policy": _display_path(policy_path),
+                  "actor": cfg.model.actor, "training": policy_training_stats(policy_path), **metrics,
+                  "comparison": {"pd_reference": baseline}}
+    write_outputs(rollout, report, args.output, f"{args.clip}: {report['controller']}")
     return report
 
 
-def _plot(errors, terms, hz: float, limit: float, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    t = np.arange(len(errors)) / hz
-    ax1.plot(t, errors, label="max body error")
-    ax1.axhline(limit, color="r", linestyle="--", label="early termination")
-    ax1.set_ylabel("m")
-    ax1.legend()
-    for key in terms[0] if terms else []:
-        ax2.plot(t[1:], [term[key] for term in terms], label=key)
-    ax2.set_xlabel("s")
-    ax2.set_ylabel("reward term")
-    ax2.legend(ncol=3, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+def _display_path(path: Path) -> str:
+    """``path`` relative to the project when it is inside it (reports stay machine-independent)."""
+    try:
+        return str(Path(path).resolve().relative_to(PROJECT_ROOT))
+    except ValueError:
+        return str(path)
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``crisp demo``: see :class:`DemoArgs`."""
     args = tyro.cli(DemoArgs, args=argv, prog="crisp demo")
     report = run_demo(args)
-    print(json.dumps(report, indent=1))
-    print(f"wrote {args.output}/report.json, tracking.png" + (", rollout.mp4" if args.video else ""))
+    rows = [report] + list(report.get("comparison", {}).values())
+    for row in rows:
+        full = row["from_frame_0"]
+        print(f"{row['controller']:>12}: success from RSI starts {row['rsi']['success_rate']:.0%}; whole clip "
+              f"from frame 0: {'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} "
+              f"frames), W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
+    names = ["report.json", "tracking.png", "torques.png"] + (["rollout.mp4"] if args.video else [])
+    print(f"wrote {', '.join(str(args.output / n) for n in names)}")
     return 0

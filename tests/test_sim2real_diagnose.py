@@ -81,3 +81,112 @@ def test_cli_errors_cleanly(tmp_path, capsys):
 
     assert main(["diagnose", "--real", str(tmp_path / "missing.npz"), "-o", str(tmp_path / "r")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+# -- effects added for load-dependent friction, mass/COM change and missing support -------------------
+
+def _selected_value(res: dict, name: str) -> float:
+    return next(p["value"] for p in res["selected"]["parameters"] if p["name"].split("@")[0] == name)
+
+
+def test_load_friction_is_found_with_its_value():
+    truth = {"family": "load_friction", "effect": "load_friction", "joint": None, "x": [0.3], "x0": [0.0]}
+    sc, train, test = _case(truth, seed=6)
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res["verdict"] == "explained" and res["selected"]["family"] == "load_friction"
+    assert abs(_selected_value(res, "mu") - 0.3) < 0.03
+    assert res["shrink"] > 0.8
+
+
+def test_load_friction_holds_the_joint_under_load():
+    """The physics, independently of any fit: with load friction the servo sticks (stays
+    put) for longer than with none, and the Coulomb friction that matches its mean
+    friction torque does not reproduce the same trajectory."""
+    sc = scenario("servo", BenchConfig())
+    rng = np.random.default_rng(7)
+    t, u = commands(sc, rng)
+    logs = {mu: synthesize(sc, {"family": "load_friction", "effect": "load_friction", "joint": None, "x": [mu],
+                                "x0": [0.0]}, t, u, 1e-6, rng).qpos[:, 0] for mu in (0.0, 0.4)}
+    still = {mu: np.mean(np.abs(np.diff(q)) < 1e-4) for mu, q in logs.items()}
+    assert still[0.4] > still[0.0] + 0.05
+
+
+def test_com_shift_is_found_with_its_value():
+    truth = {"family": "mass", "effect": "com_shift", "joint": None, "x": [0.02, 0.015], "x0": [0.0, 0.0]}
+    sc, train, test = _case(truth, seed=8)
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res["verdict"] == "explained" and res["selected"]["effect"].startswith("com_shift")
+    fit = np.array([_selected_value(res, "along"), _selected_value(res, "across")])
+    assert np.linalg.norm(fit - [0.02, 0.015]) < 0.1 * np.linalg.norm([0.02, 0.015])
+
+
+def test_com_shift_moves_the_gravity_torque():
+    """A COM shift across the lever of the pendulum changes where it hangs at rest by
+    atan(across / lever), which is what the effect must do to the model."""
+    import mujoco
+
+    sc = scenario("servo", BenchConfig())
+    t, u = commands(sc, np.random.default_rng(0))
+    tr = bind(synthesize(sc, {"family": "none"}, t, u, 1.0, np.random.default_rng(0)), sc.model)
+    model = sc.model.__copy__()
+    fx.ComShift().edit_model(model, np.array([0.0, 0.02]), tr)
+    model.actuator_gainprm[:] = 0.0  # actuator off: the pendulum hangs freely
+    model.actuator_biasprm[:] = 0.0
+    model.dof_damping[:] = 0.5
+    data = mujoco.MjData(model)
+    for _ in range(4000):
+        mujoco.mj_step(model, data)
+    assert abs(abs(data.qpos[0]) - np.arctan(0.02 / 0.1)) < 0.01
+
+
+def test_stribeck_is_found_with_its_torque():
+    sc = scenario("servo", BenchConfig())
+    ts = 0.15
+    truth = {"family": "stribeck_friction", "effect": "stribeck_friction", "joint": None, "x": [ts, 0.3],
+             "x0": [0.0, 0.0]}
+    _, train, test = _case(truth, seed=9)
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res["verdict"] == "explained" and res["selected"]["family"] == "stribeck_friction"
+    assert abs(_selected_value(res, "static") - ts) < 0.1 * ts
+
+
+def _humanoid_box_case(seed: int = 0):
+    sc = scenario("humanoid", BenchConfig())
+    rng = np.random.default_rng(seed)
+    t, u1 = commands(sc, rng)
+    _, u2 = commands(sc, rng)
+    truth = {"family": "support_box", "effect": "support_box", "joint": None, "x": [0.02, 0.05, 0.09]}
+    return sc, synthesize(sc, truth, t, u1, 1.0, rng), synthesize(sc, truth, t, u2, 1.0, rng)
+
+
+def test_support_box_height_fits_back():
+    sc, train, _ = _humanoid_box_case()
+    tr = bind(train, sc.model)
+    fitter = Fitter(Replayer([tr], make_windows([tr], 0.5)))
+    res = fitter.fit(Combo((fx.SupportBox(),), tr))
+    assert abs(res.x[0] - 0.02) < 0.002
+    assert np.linalg.norm(res.x[1:] - [0.05, 0.09]) < 0.05
+
+
+@pytest.mark.slow
+def test_support_box_is_selected_over_ground_effects():
+    sc, train, test = _humanoid_box_case(seed=1)
+    families = ("support_box", "ground_height", "ground_tilt", "contact_softness", "encoder_bias")
+    res = diagnose([(train, sc.model)], [(test, sc.model)], DiagnoseConfig(show_progress=False, families=families))
+    assert res["verdict"] == "explained" and res["selected"]["family"] == "support_box"
+    assert abs(_selected_value(res, "height") - 0.02) < 0.002
+
+
+def test_bench_scores_weak_effects_apart():
+    """The documented rule: an in-library effect whose own noise-free gap is below
+    sqrt(1.5^2 - 1) noise floors is weak; calling it "none" is then right."""
+    from crisp_gym.sim2real.bench import DETECTABLE, score_case
+
+    truth = {"family": "delay", "effect": "actuator_delay", "x": [0.01], "x0": [0.0]}
+    result = {"verdict": "none", "selected": None, "noise_floor": 0.01, "shrink": 0.0, "gap_before": 0.011,
+              "where": {"worst_joint": "servo"}}
+    weak = score_case({**truth, "signature": 0.5 * DETECTABLE * 0.01}, result)
+    strong = score_case({**truth, "signature": 2.0 * DETECTABLE * 0.01}, result)
+    assert weak["weak"] and weak["correct"]
+    assert not strong["weak"] and not strong["correct"]
+    assert abs(DETECTABLE - np.sqrt(1.25)) < 1e-12

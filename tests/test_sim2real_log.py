@@ -85,3 +85,32 @@ def test_go2_adapter_fixed_base_tracks():
     q = rep.open_loop(nominal_inputs([tr]))[0]
     # The welded base must not collide with its legs: open loop follows the real log closely.
     assert np.sqrt(np.mean((q - tr.log.qpos) ** 2)) < 0.05
+
+
+def test_cli_model_gains_an_inert_support_placeholder(tmp_path):
+    """``--model`` MJCFs get the parked box the missing-support effect moves into place;
+    it must not change the nominal dynamics."""
+    import mujoco
+
+    from crisp_gym.sim2real.cli import load_any
+    from crisp_gym.sim2real.models import SUPPORT_SLOT, build_humanoid_bench_spec
+
+    spec = build_humanoid_bench_spec()
+    spec.delete(spec.body(SUPPORT_SLOT))
+    xml = tmp_path / "robot.xml"
+    xml.write_text(spec.to_xml())
+    plain = mujoco.MjModel.from_xml_path(str(xml))
+    t = np.arange(20) * 0.01
+    log = RealLog(time=t, qpos=np.zeros((20, 1)), ctrl=np.full((20, 1), 0.3), joint_names=("L_Knee_y",),
+                  actuator_names=("L_Knee_y",))
+    _, model = load_any(save_log(log, tmp_path / "log.npz"), xml)
+    assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, SUPPORT_SLOT) >= 0
+    assert mujoco.mj_name2id(plain, mujoco.mjtObj.mjOBJ_GEOM, SUPPORT_SLOT) < 0
+    traj = []
+    for m in (plain, model):
+        d = mujoco.MjData(m)
+        d.ctrl[m.actuator("L_Knee_y").id] = 0.3
+        for _ in range(200):
+            mujoco.mj_step(m, d)
+        traj.append(d.qpos.copy())
+    np.testing.assert_allclose(traj[0], traj[1], atol=1e-12)

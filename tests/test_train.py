@@ -147,6 +147,24 @@ def test_normalize_advantages() -> None:
 # ----------------------------------------------------------------------------- env adapter
 
 
+def test_training_reward_caps_the_energy_penalty_and_scales() -> None:
+    from train.env import TrainingReward
+
+    terms = {"pos": np.array([2.0, 1.0, 0.5]), "energy": np.array([-0.1, -3.0, np.nan])}
+    reward = np.array([2.0 - 0.1, 1.0 - 3.0, 0.0])  # a non-finite state gets reward 0 from the env
+    assert TrainingReward().is_identity
+    np.testing.assert_allclose(TrainingReward()(reward, terms), reward)
+    capped = TrainingReward(scale=0.5, energy_cap=0.5)
+    assert not capped.is_identity
+    # below the cap unchanged; above it the penalty is -0.5; a NaN term leaves the reward alone
+    np.testing.assert_allclose(capped(reward, terms), 0.5 * np.array([1.9, 1.0 - 0.5, 0.0]))
+    with pytest.raises(ValueError):
+        TrainingReward(scale=0.0)
+    with pytest.raises(ValueError):
+        TrainingReward(energy_cap=-1.0)
+
+
+
 def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
     from torchrl.envs.utils import check_env_specs
 
@@ -315,3 +333,20 @@ def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
     assert result.interrupted and result.iteration == 3
     assert load_checkpoint(tmp_path)["iteration"] == 3
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> None:
+    from train.ppo import RunLogger, run_wall_time
+
+    logger = RunLogger(tmp_path, append=False)
+    for i in range(1, 6):
+        logger.log({"iteration": i, "frames": 100 * i, "time_s": 10.0 * i})
+    logger.close()
+    # the run died after iteration 5 with its last checkpoint at 3: resuming logs 4 and 5 again
+    logger = RunLogger(tmp_path, append=True, iteration=3)
+    logger.log({"iteration": 4, "frames": 400, "time_s": 7.0})
+    logger.close()
+    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    assert [int(r["iteration"]) for r in rows] == [1, 2, 3, 4]
+    # the resumed segment's clock restarts: wall time adds the segments (30 s + 7 s)
+    assert run_wall_time(tmp_path / "progress.csv") == pytest.approx(37.0)

@@ -15,11 +15,16 @@ Besides the observations (``proprio``, ``targets`` and, scene-aware, ``points``)
 carries episode statistics for logging: ``episode_return`` and ``episode_length`` (running
 values; the episode's totals on its last step) and ``success`` (the episode reached the
 clip's last frame without early termination).
+
+The ``reward`` PPO learns from may differ from the env's (see :class:`TrainingReward`); the
+logged ``episode_return`` is always the env's own reward, so it compares across runs.
 """
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,19 +38,55 @@ from crisp_gym.envs.track_vector import CrispTrackVectorEnv
 STAT_KEYS = ("episode_return", "episode_length", "success")
 
 
+@dataclass(frozen=True)
+class TrainingReward:
+    """How the env's reward becomes the reward PPO learns from.
+
+    Attributes:
+        scale: multiplies the reward (returns of O(1–10) are easier for the critic to regress
+            than the env's O(100) ones; normalised advantages make the policy gradient
+            independent of it).
+        energy_cap: bound on the energy penalty's magnitude per step (``None``: unbounded, as
+            in the paper). A falling humanoid's PD servos saturate and the penalty reaches
+            several units per step, more than all tracking terms together: the rewards of a
+            failing episode turn negative and ending it early starts to pay.
+    """
+
+    scale: float = 1.0
+    energy_cap: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.scale > 0 or (self.energy_cap is not None and not self.energy_cap >= 0):
+            raise ValueError(f"scale must be positive and energy_cap non-negative or None, got {self}")
+
+    def __call__(self, reward: np.ndarray, terms: dict[str, np.ndarray]) -> np.ndarray:
+        """(N,) training rewards from the env's rewards and their ``reward_terms``."""
+        if self.energy_cap is not None:
+            energy = terms["energy"]
+            capped = reward - energy + np.maximum(energy, -self.energy_cap)
+            reward = np.where(np.isfinite(capped), capped, reward)
+        return self.scale * reward
+
+    @property
+    def is_identity(self) -> bool:
+        return self.scale == 1.0 and (self.energy_cap is None or math.isinf(self.energy_cap))
+
+
 class CrispTrackTorchEnv(EnvBase):
     """TorchRL view of a :class:`CrispTrackVectorEnv` (CPU tensors, float32 observations).
 
     Args:
         vec_env: the batched env; its ``autoreset_mode`` must be ``SAME_STEP``.
         seed: seed of the first full reset (later full resets continue the env's generator).
+        reward: the training reward (default: the env's reward unchanged).
 
     Attributes:
         env_time: seconds spent inside the vector env's ``reset``/``step`` (physics and
             observations), for profiling.
     """
 
-    def __init__(self, vec_env: CrispTrackVectorEnv, seed: int | None = None):
+    def __init__(self, vec_env: CrispTrackVectorEnv, seed: int | None = None,
+                 reward: TrainingReward = TrainingReward()):
         mode = getattr(vec_env, "autoreset_mode", None)
         if getattr(mode, "name", None) != "SAME_STEP":
             raise ValueError(f"the vector env must autoreset in SAME_STEP mode, got {mode!r}")
@@ -72,6 +113,7 @@ class CrispTrackTorchEnv(EnvBase):
             shape=(n,),
         )
         self._seed = seed
+        self.training_reward = reward
         self._pending: dict[str, np.ndarray] | None = None  # next episodes' first observations
         self._needs_reset = np.ones(n, dtype=bool)
         self._return = np.zeros(n)
@@ -133,6 +175,8 @@ class CrispTrackTorchEnv(EnvBase):
                     next_obs[key][i] = info["final_obs"][i][key]
             self._needs_reset |= done
         out = self._obs_td(next_obs, self._return, self._length, np.asarray(info["success"], dtype=bool))
+        if not self.training_reward.is_identity:
+            reward = self.training_reward(reward, info["reward_terms"])
         out["reward"] = torch.from_numpy(reward.astype(np.float32)).unsqueeze(-1)
         out["done"] = torch.from_numpy(done).unsqueeze(-1)
         out["terminated"] = torch.from_numpy(terminated.astype(bool)).unsqueeze(-1)

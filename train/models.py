@@ -234,7 +234,7 @@ class TransformerActor(nn.Module):
                   self.target_embed(targets) + self.frame_embed + self.type_embed[1]]
         if self.scene_aware:
             feature = self.point_embed(self.pointnet(points))
-            tokens.append(feature.reshape(len(feature), self.num_point_tokens, -1) + self.type_embed[2])
+            tokens.append(feature.reshape(feature.shape[0], self.num_point_tokens, -1) + self.type_embed[2])
         return torch.cat(tokens, dim=1)
 
     def forward(self, proprio: torch.Tensor, targets: torch.Tensor,

@@ -46,6 +46,8 @@ from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, Mode
 
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
+POLICY_NAME = "policy.pt"
+POLICY_FORMAT = 1
 _CSV_FIELDS = ("iteration", "frames", "time_s", "fps", "episodes", "mean_return", "mean_length", "success_rate",
                "loss_objective", "loss_critic", "kl_approx", "clip_fraction", "explained_variance",
                "collect_s", "env_s", "update_s")
@@ -74,6 +76,11 @@ class TrainConfig:
         critic_loss: ``"l2"`` or ``"smooth_l1"``.
         normalize_advantage: normalise advantages per minibatch (zero mean, unit std).
         normalize_obs: running observation normalisation (proprio and targets).
+        reward_scale: factor on the rewards PPO learns from (not the logged returns); see
+            :class:`~train.env.TrainingReward`.
+        energy_cap: bound on the energy penalty's magnitude per step in the rewards PPO
+            learns from (``None``: unbounded, as in the paper); see
+            :class:`~train.env.TrainingReward`.
         model: actor/critic architecture (paper: transformer actor, [1024, 512] critic).
         seed: seeds torch, the minibatch shuffles and the env's start frames.
         device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"``...
@@ -101,6 +108,8 @@ class TrainConfig:
     critic_loss: str = "l2"
     normalize_advantage: bool = True
     normalize_obs: bool = True
+    reward_scale: float = 1.0
+    energy_cap: float | None = None
     model: ModelConfig = field(default_factory=ModelConfig)
     seed: int = 0
     device: str = "auto"
@@ -135,27 +144,38 @@ def paper_profile(**overrides: Any) -> TrainConfig:
 def cpu_profile(**overrides: Any) -> TrainConfig:
     """A setup for a small CPU machine (aimed at 2 cores), where the PPO update, not physics, is the cost.
 
-    Differences from the paper's profile and why:
+    Differences from the paper's profile and why (numbers from ``flat_walk`` runs on 2 shared
+    cores; see ``docs/training.md``):
 
-    * MLP actor of similar size (``mlp_actor_hidden=(512, 512)``): an epoch over 8192
-      samples costs about a third of the transformer's on 2 cores;
-    * 64 envs × 128 steps = 8192 frames per iteration, one minibatch of 8192 (bigger
-      batches per gradient step, fewer steps per collected frame);
-    * 2 epochs instead of 5, so the update takes about as long as the collection;
+    * small MLPs: actor (256, 256), critic (512, 256). Both read the 2,521 observation
+      features, so their first layers are most of the update's cost; these cost about a
+      third of a (512, 512) actor with the paper's (1024, 512) critic, and the policy file
+      stays under 3 MB;
+    * 64 envs × 32 steps = 2,048 frames per iteration, 2 epochs of 1,024-sample minibatches.
+      With σ = 0.055 over 69 dimensions a shift of the mean by 0.004 rad already costs a KL
+      of ~0.15, so PPO's clip, not the learning rate, bounds each iteration's step; what
+      makes a frame budget go further is *more, smaller* iterations. 4 epochs over
+      4,096 frames clipped 55–60 % of the samples (KL 0.10–0.20), 2 epochs over 2,048 about
+      30 % (KL 0.02–0.03) at half the update cost per frame;
+    * actor lr 1e-4 (paper 2e-5): at 2e-5 with 2 steps per 8,192 frames, KL stayed at
+      ~0.001 and the clip fraction at ~0.003, i.e. the policy hardly moved (return flat over
+      130 K frames); critic lr 5e-4;
+    * training rewards scaled by 0.05 (values of O(1–10) instead of O(100) for the critic)
+      and the energy penalty capped at 0.5 per step: unbounded, it reaches −2 per step in a
+      fall, more than all tracking terms, and makes ending an episode early pay. The logged
+      returns and the evaluation use the env's own reward;
     * a smaller PointNet (per-point widths 32, 64 instead of 64, 128, 256): with 128 points
       per sample the paper-sized one made the scene-aware update ~3× slower than the
       scene-blind one;
-    * the paper's actor lr (2e-5) is kept: with σ = 0.055 over 69 dimensions even that gives
-      approximate KLs of ~0.1 and clip fractions of ~0.4 per update (measured on a test clip),
-      so a higher rate would only be clipped away; the critic's is raised to 3e-4;
-    * a 20 M frame budget (a few hours at ~2K frames/s).
+    * a 20 M frame budget.
 
     Residual actions (the env's default) are kept: an untrained policy already tracks the
     reference pose with its PD targets, which matters most when few frames are affordable.
     """
-    base = TrainConfig(num_envs=64, steps_per_env=128, minibatch_size=8192, epochs=2, actor_lr=2e-5,
-                       critic_lr=3e-4, frames=20_000_000, checkpoint_every=25,
-                       model=ModelConfig(actor="mlp", pointnet_hidden=(32, 64)))
+    base = TrainConfig(num_envs=64, steps_per_env=32, minibatch_size=1024, epochs=2, actor_lr=1e-4,
+                       critic_lr=5e-4, reward_scale=0.05, energy_cap=0.5, frames=20_000_000, checkpoint_every=10,
+                       model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(512, 256),
+                                         pointnet_hidden=(32, 64)))
     return replace(base, **overrides)
 
 
@@ -210,11 +230,11 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
     import gymnasium as gym
 
     import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
-    from train.env import CrispTrackTorchEnv
+    from train.env import CrispTrackTorchEnv, TrainingReward
 
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=cfg.clip, scene_aware=cfg.scene_aware, num_threads=cfg.num_threads)
-    return CrispTrackTorchEnv(vec_env, seed=seed)
+    return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 
 def normalize_advantages(advantage: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -285,14 +305,102 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def load_policy(path: str | Path, device: torch.device | str = "cpu") -> tuple[FixedStdGaussian, TrainConfig]:
-    """The trained actor ((loc, scale) from observations, normaliser included) and its config."""
-    state = load_checkpoint(path)
+    """The trained actor ((loc, scale) from observations, normaliser included) and its config.
+
+    ``path`` is a run directory (its ``policy.pt`` if it has one, else its ``checkpoint.pt``),
+    a training checkpoint or a policy file written by :func:`export_policy`.
+    """
+    _, state = _read_policy_source(path)
     cfg = config_from_dict(state["config"])
+    if state.get("kind") == "policy":
+        num_targets = state["actor"]["actor.normalizer.targets.mean"].shape[0]
+        normalizer = ObsNormalizer(num_targets, clip=cfg.model.obs_clip, enabled=cfg.normalize_obs)
+        actor = FixedStdGaussian(build_actor(cfg.model, num_targets, cfg.scene_aware, normalizer),
+                                 cfg.model.action_std)
+        actor.load_state_dict(state["actor"])
+        return actor.to(device).eval(), cfg
     num_targets, num_points = _obs_sizes(state["critic"])
     agent = build_agent(cfg.model, num_targets, num_points if cfg.scene_aware else 0, cfg.normalize_obs, device)
     agent.actor.load_state_dict(state["actor"])
     agent.critic.load_state_dict(state["critic"])
     return agent.actor.eval(), cfg
+
+
+def _read_policy_source(path: str | Path) -> tuple[Path, dict[str, Any]]:
+    """(file, contents) of a run directory, checkpoint or policy file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / POLICY_NAME if (path / POLICY_NAME).is_file() else path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"no policy at {path}: expected a run directory, a {CHECKPOINT_NAME} "
+                                f"or a {POLICY_NAME}")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or not (
+            state.get("kind") == "policy" and state.get("format_version") == POLICY_FORMAT
+            or state.get("format_version") == CHECKPOINT_FORMAT and "critic" in state):
+        raise ValueError(f"{path} is neither a crisp-gym training checkpoint nor a policy file "
+                         f"(version {CHECKPOINT_FORMAT}/{POLICY_FORMAT})")
+    return path, state
+
+
+def export_policy(run: str | Path, output: str | Path, clip: str | None = None) -> Path:
+    """Write a run's actor as a small self-contained policy file, ``output/policy.pt``.
+
+    It holds the actor's ``state_dict`` (observation-normaliser statistics included), the
+    run's config and its training totals (iterations, frames, wall time from
+    ``progress.csv``): all :func:`load_policy` needs, without the critic and optimiser state
+    that make a checkpoint several times larger.
+
+    Args:
+        run: run directory or checkpoint file.
+        output: directory for ``policy.pt`` (created).
+        clip: clip name to record in the config instead of the run's (e.g. a registered name
+            in place of a machine-specific directory).
+    """
+    state = load_checkpoint(run)
+    config = dict(state["config"])
+    if clip is not None:
+        config["clip"] = clip
+    payload = {
+        "format_version": POLICY_FORMAT,
+        "kind": "policy",
+        "config": config,
+        "actor": state["actor"],
+        "training": policy_training_stats(run),
+    }
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    path = output / POLICY_NAME
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def policy_training_stats(path: str | Path) -> dict[str, float | None]:
+    """Training totals of a run directory, checkpoint or policy file: iterations, frames and
+    wall time (``None`` when the run's ``progress.csv`` is not next to its checkpoint)."""
+    path, state = _read_policy_source(path)
+    if state.get("kind") == "policy":
+        return dict(state["training"])
+    return {"iterations": state["iteration"], "frames": state["frames"],
+            "wall_time_s": run_wall_time(path.parent / "progress.csv")}
+
+
+def run_wall_time(progress_csv: str | Path) -> float | None:
+    """Seconds a run trained in total, from its ``progress.csv`` (resumed segments added up);
+    ``None`` without the file."""
+    path = Path(progress_csv)
+    if not path.is_file():
+        return None
+    total, last = 0.0, 0.0
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            elapsed = float(row["time_s"])
+            if elapsed < last:  # a resumed segment restarts its clock
+                total += last
+            last = elapsed
+    return total + last
 
 
 def _obs_sizes(critic_state: dict[str, torch.Tensor]) -> tuple[int, int]:
@@ -319,9 +427,11 @@ def _check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
 class RunLogger:
     """CSV rows (+ TensorBoard scalars when the ``tensorboard`` package is importable)."""
 
-    def __init__(self, directory: Path, append: bool):
+    def __init__(self, directory: Path, append: bool, iteration: int = 0):
         self.path = directory / "progress.csv"
         new = not (append and self.path.exists())
+        if not new:
+            self._truncate(iteration)
         self._file = open(self.path, "w" if new else "a", newline="")
         self._csv = csv.DictWriter(self._file, fieldnames=_CSV_FIELDS, extrasaction="ignore")
         if new:
@@ -333,6 +443,20 @@ class RunLogger:
             pass
         else:
             self._tb = SummaryWriter(str(directory / "tb"))
+
+    def _truncate(self, iteration: int) -> None:
+        """Drop rows after ``iteration``: a run that died between checkpoints logged
+        iterations that resuming repeats."""
+        with open(self.path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if all(int(row["iteration"]) <= iteration for row in rows):
+            return
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=_CSV_FIELDS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(row for row in rows if int(row["iteration"]) <= iteration)
+        os.replace(tmp, self.path)
 
     def log(self, row: dict[str, float]) -> None:
         self._csv.writerow(row)
@@ -466,7 +590,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     collector = Collector(env, agent.policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1,
                           env_device="cpu", policy_device=device, storing_device=device,
                           auto_register_policy_transforms=False)
-    logger = RunLogger(out, append=cfg.resume)
+    logger = RunLogger(out, append=cfg.resume, iteration=iteration)
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}
     bar = tqdm(total=cfg.frames, initial=min(frames, cfg.frames), unit="frame", unit_scale=True,

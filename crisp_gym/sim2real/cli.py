@@ -21,6 +21,7 @@ import tyro
 from crisp_gym.sim2real.adapters import load_go2_npz, load_servo_json
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.log import RealLog, load_log
+from crisp_gym.sim2real.models import add_support_slot
 from crisp_gym.sim2real.report import write_report
 
 
@@ -67,7 +68,8 @@ def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjMod
         raise ValueError(f"{path} is a real-log npz: pass the MJCF it was recorded on with --model")
     if not model_path.is_file():
         raise FileNotFoundError(f"model not found: {model_path}")
-    return load_log(path), mujoco.MjModel.from_xml_path(str(model_path))
+    # The parked placeholder lets the library try a support the scene lacks (inert otherwise).
+    return load_log(path), add_support_slot(mujoco.MjSpec.from_file(str(model_path))).compile()
 
 
 def run_diagnose(args: Diagnose) -> int:

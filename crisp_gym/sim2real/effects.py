@@ -5,7 +5,9 @@ masses, the ground...) or to the signals (a command delay, an encoder bias...). 
 shared by its target joints (one parameter), or per joint (one parameter each).
 Adding an effect is one small subclass: say which parameters it has and override
 ``edit_model`` and/or ``edit_signals`` (and ``measure``, if it acts on the sensor, so
-that synthetic logs can be generated with it).
+that synthetic logs can be generated with it), or ``friction`` for dry friction that
+depends on the state (load-dependent and Stribeck friction; the replay then steps the
+model one log sample at a time).
 
 Identification treats delays on the command and on the sensor as one family: when the
 servo closes its loop on its own encoder, both shift the response by the same amount in
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from crisp_gym.sim2real.models import SUPPORT_SLOT, lowest_point
 from crisp_gym.sim2real.replay import Trajectory
 
 
@@ -34,6 +37,14 @@ class Param:
     unit: str
 
 
+def joint_actuators(tr: Trajectory, cols: np.ndarray) -> list[np.ndarray]:
+    """For each logged column in ``cols``, the actuators that drive its joint directly."""
+    m = tr.model
+    jids = [m.joint(tr.log.joint_names[c]).id for c in cols]
+    joint_trn = m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_JOINT)
+    return [np.flatnonzero(joint_trn & (m.actuator_trnid[:, 0] == j)) for j in jids]
+
+
 @dataclass
 class Signals:
     """Per-trajectory signals an effect may transform: fine-grid commands (T*nsub, nu)
@@ -45,12 +56,21 @@ class Signals:
 
 
 class Effect:
-    """Base class. Subclasses set ``name`` and ``family`` and implement :meth:`params`."""
+    """Base class. Subclasses set ``name`` and ``family`` and implement :meth:`params`.
+
+    Scopes: every effect is tried shared by all joints; on multi-joint logs also with one
+    parameter per joint (``per_joint_allowed``) and confined to the joint with the largest
+    gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
+    points the fit descends from, for effects with several local minima.
+    """
 
     name = "effect"
     family = "effect"
     touches_model = False
+    state_friction = False
     per_joint_allowed = True
+    focus_allowed = False
+    refine = 1  # how many of the best start points are descended from (several local minima)
 
     def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
         self.joints = joints
@@ -76,10 +96,7 @@ class Effect:
 
     def actuators_of(self, tr: Trajectory, cols: np.ndarray) -> list[np.ndarray]:
         """For each target column, the actuators that drive its joint directly."""
-        m = tr.model
-        jids = [m.joint(tr.log.joint_names[c]).id for c in cols]
-        joint_trn = m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_JOINT)
-        return [np.flatnonzero(joint_trn & (m.actuator_trnid[:, 0] == j)) for j in jids]
+        return joint_actuators(tr, cols)
 
     def expand(self, base: list[Param], tr: Trajectory) -> list[Param]:
         """Per-joint copies of a parameter template (named ``<param>@<joint>``)."""
@@ -109,6 +126,16 @@ class Effect:
     def measure(self, qpos: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
         """Map simulated true positions (T, n) to what the sensor reports."""
         return qpos
+
+    def measure_velocity(self, qvel: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
+        """Map simulated true velocities (T, n) to what the sensor reports (logs with velocities)."""
+        return qvel
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        """Dry friction (k, n) added to the logged joints at k states, given the commands
+        (k, nu) and powered actuators (k, nu) there (only if ``state_friction``)."""
+        raise NotImplementedError
 
 
 # -- scales shared by the joint effects ------------------------------------------------------
@@ -200,6 +227,9 @@ class SensorDelay(Effect):
     def measure(self, qpos: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
         return _shift(qpos, x[0] / tr.log.dt)
 
+    def measure_velocity(self, qvel: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
+        return _shift(qvel, x[0] / tr.log.dt)
+
 
 class Backlash(Effect):
     """Play between command and joint: the effective target moves only once the command
@@ -235,6 +265,11 @@ class EncoderBias(Effect):
 
     def params(self, tr: Trajectory) -> list[Param]:
         return self.expand([Param("bias", 0.0, -0.3, 0.3, 1e-3, "rad")], tr)
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        # Not convex once contacts are involved: a biased leg starts its windows in or above the ground.
+        n = len(self.params(tr))
+        return [np.full(n, b) for b in (0.0, -0.01, 0.01, -0.03, 0.03, -0.06, 0.06)]
 
     def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
         qpos = sig.qpos.copy()
@@ -345,8 +380,9 @@ class TorqueSaturation(Effect):
         return self.expand([Param("fraction", 1.0, 0.02, 1.0, 0.005, "of limit")], tr)
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        # Geometric: a robot far from its torque limits saturates at a small fraction of them.
         n = len(self.params(tr))
-        return [np.full(n, f) for f in (0.1, 0.25, 0.5, 0.8)]
+        return [np.full(n, f) for f in (0.03, 0.08, 0.2, 0.45, 0.8)]
 
     def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
         cols = self.columns(tr)
@@ -361,7 +397,7 @@ class MassScale(Effect):
     """The links are heavier or lighter than modelled (payload, wrong CAD densities):
     masses and inertias of every body moved by a target joint, times ``scale``."""
 
-    name, family, touches_model, per_joint_allowed = "mass_scale", "mass", True, False
+    name, family, touches_model, per_joint_allowed, focus_allowed = "mass_scale", "mass", True, False, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("scale", 1.0, 0.3, 3.0, 0.01, "")]
@@ -388,11 +424,143 @@ def _moved_bodies(model: mujoco.MjModel, jids: list[int]) -> np.ndarray:
     return np.array(moved, dtype=int)
 
 
+class ComShift(Effect):
+    """The link's centre of mass is off (payload mounted off-centre, wrong CAD): the COM
+    of each target joint's body moves ``along`` the lever (joint axis to COM) and
+    ``across`` it, in the plane normal to the joint axis (the axial part has no effect)."""
+
+    name, family, touches_model, per_joint_allowed, focus_allowed = "com_shift", "mass", True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        reach = max(2.0 * float(lever_scale(tr)[self.columns(tr)].max()), 0.05)
+        return [Param("along", 0.0, -reach, reach, 1e-4, "m"), Param("across", 0.0, -reach, reach, 1e-4, "m")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        r = 0.1 * float(lever_scale(tr)[self.columns(tr)].max())
+        return [np.array([a, b]) for a in (-r, r) for b in (-r, r)]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        for c in self.columns(tr):
+            jid = model.joint(tr.log.joint_names[c]).id
+            along, across = _lever_frame(model, jid)
+            model.body_ipos[model.jnt_bodyid[jid]] += x[0] * along + x[1] * across
+
+
+def _lever(model: mujoco.MjModel, jid: int) -> tuple[np.ndarray, np.ndarray]:
+    """The joint's unit axis and its lever: the vector from the axis to the COM of the
+    joint's body, normal to the axis (both in the body frame)."""
+    axis = model.jnt_axis[jid] / np.linalg.norm(model.jnt_axis[jid])
+    r = model.body_ipos[model.jnt_bodyid[jid]] - model.jnt_pos[jid]
+    return axis, r - (r @ axis) * axis
+
+
+def _lever_frame(model: mujoco.MjModel, jid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors, in the joint's body frame, along the lever and across it."""
+    axis, r = _lever(model, jid)
+    if np.linalg.norm(r) < 1e-6:  # COM on the axis: any normal direction will do
+        r = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    along = r / np.linalg.norm(r)
+    return along, np.cross(axis, along)
+
+
+def lever_scale(tr: Trajectory) -> np.ndarray:
+    """Per logged joint, the length of its lever (:func:`_lever`), at least 1 cm."""
+    return np.array([max(float(np.linalg.norm(_lever(tr.model, tr.model.joint(n).id)[1])), 0.01)
+                     for n in tr.log.joint_names])
+
+
+# -- state-dependent friction ---------------------------------------------------------------------
+def actuator_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, ctrl: np.ndarray, enabled: np.ndarray,
+                    qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """(k, len(cols)) torque the joint actuators apply to each target joint at the given
+    states: the affine actuator law (gain x ctrl + bias), clamped to its force range, zero
+    where the actuator is off. This is the torque the gear train transmits."""
+    out = np.zeros((len(ctrl), len(cols)))
+    for i, (c, acts) in enumerate(zip(cols, joint_actuators(tr, cols))):
+        for a in acts:
+            gear = model.actuator_gear[a, 0]
+            force = (model.actuator_gainprm[a, 0] * ctrl[:, a] + model.actuator_biasprm[a, 0]
+                     + model.actuator_biasprm[a, 1] * gear * qpos[:, c] + model.actuator_biasprm[a, 2] * gear * qvel[:, c])
+            if model.actuator_forcelimited[a]:
+                force = np.clip(force, *model.actuator_forcerange[a])
+            out[:, i] += gear * force * enabled[:, a]
+    return out
+
+
+class LoadFriction(Effect):
+    """Gear friction that grows with the torque the gear train transmits (BAM's
+    load-dependent friction): up to ``mu`` x |actuator torque| of dry friction. Under
+    load it holds the joint still long after the command has moved (stick phases that
+    Coulomb + viscous friction cannot reproduce)."""
+
+    name = family = "load_friction"
+    state_friction = True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return self.expand([Param("mu", 0.0, 0.0, 0.95, 0.005, "N·m per N·m")], tr)
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        n = len(self.params(tr))
+        return [np.full(n, m) for m in (0.05, 0.15, 0.4)]
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        cols = self.columns(tr)
+        out = np.zeros(qpos.shape)
+        out[:, cols] = self.values(x, tr) * np.abs(actuator_torque(model, tr, cols, ctrl, enabled, qpos, qvel))
+        return out
+
+
+class StribeckFriction(Effect):
+    """Extra dry friction near rest that fades with speed (Stribeck effect): ``static``
+    x exp(-(v / ``velocity``)^2) on top of the model's friction: breakaway is harder than
+    sliding."""
+
+    name = family = "stribeck_friction"
+    state_friction, per_joint_allowed, focus_allowed = True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        cols = self.columns(tr)
+        ts = float(torque_scale(tr)[cols].max())
+        vs = float(speed_scale(tr)[cols].max())
+        return [Param("static", 0.0, 0.0, 5 * ts, 0.02 * ts, "N·m"),
+                Param("velocity", 0.2 * vs, 0.02 * vs, 2 * vs, 0.005 * vs, "rad/s")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        cols = self.columns(tr)
+        ts = float(torque_scale(tr)[cols].max())
+        vs = float(speed_scale(tr)[cols].max())
+        return [np.array([f * ts, v * vs]) for f in (0.1, 0.4) for v in (0.1, 0.4)]
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        cols = self.columns(tr)
+        out = np.zeros(qpos.shape)
+        out[:, cols] = x[0] * np.exp(-(qvel[:, cols] / x[1]) ** 2)
+        return out
+
+
 # -- contact effects ------------------------------------------------------------------------------
 def ground_geoms(model: mujoco.MjModel) -> np.ndarray:
     """Colliding geoms of the world body: the floor and any static support."""
     colliding = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
     return np.flatnonzero((model.geom_bodyid == 0) & colliding)
+
+
+def ground_top(model: mujoco.MjModel) -> float:
+    """Height of the highest top face among the ground geoms (boxes, planes, others by
+    their bounding sphere)."""
+    tops = []
+    for g in ground_geoms(model):
+        z = float(model.geom_pos[g, 2])
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+            mat = np.zeros(9)
+            mujoco.mju_quat2Mat(mat, model.geom_quat[g])
+            z += float(np.abs(mat.reshape(3, 3)[2]) @ model.geom_size[g])
+        elif model.geom_type[g] != mujoco.mjtGeom.mjGEOM_PLANE:
+            z += float(model.geom_rbound[g])
+        tops.append(z)
+    return max(tops)
 
 
 class _GroundEffect(Effect):
@@ -472,9 +640,65 @@ class GroundTilt(_GroundEffect):
             model.geom_pos[g] = rotated
 
 
+class SupportBox(_GroundEffect):
+    """A support the scene lacks: a box standing on the ground, its top ``height`` above
+    the ground, centred at (``x``, ``y``) in the world. It moves the model's parked
+    placeholder box into place (see :func:`~crisp_gym.sim2real.models.add_support_slot`):
+    a compiled model cannot gain a geom, so models without the placeholder skip it."""
+
+    name = family = "support_box"
+    refine = 3
+
+    def applicable(self, tr: Trajectory) -> bool:
+        return super().applicable(tr) and mujoco.mj_name2id(tr.model, mujoco.mjtObj.mjOBJ_GEOM, SUPPORT_SLOT) >= 0
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        xy = support_points(tr)
+        lo, hi = xy.min(axis=0) - 0.15, xy.max(axis=0) + 0.15
+        return [Param("height", 0.0, 0.0, 0.1, 2e-4, "m"), Param("x", float(xy[0, 0]), float(lo[0]), float(hi[0]), 5e-4, "m"),
+                Param("y", float(xy[0, 1]), float(lo[1]), float(hi[1]), 5e-4, "m")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        # A grid: the box's edges meet the moving feet in many places (local minima).
+        return [np.array([h, x + dx, y + dy]) for x, y in support_points(tr) for dx in np.linspace(-0.12, 0.12, 7)
+                for dy in (-0.04, 0.0, 0.04) for h in (0.01, 0.025)]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        if x[0] <= 0.0:
+            return  # no box: the placeholder stays parked
+        g = model.geom(SUPPORT_SLOT).id
+        ref = ground_geoms(model)[0]
+        model.body_pos[model.geom_bodyid[g]] = (x[1], x[2], ground_top(model) + x[0] - model.geom_size[g, 2])
+        for field in ("geom_contype", "geom_conaffinity", "geom_condim", "geom_friction", "geom_solref", "geom_solimp"):
+            getattr(model, field)[g] = getattr(model, field)[ref]
+        # The broad phase filters by the per-body masks compiled from the geoms' masks.
+        model.body_contype[model.geom_bodyid[g]] = model.geom_contype[g]
+        model.body_conaffinity[model.geom_bodyid[g]] = model.geom_conaffinity[g]
+
+
+def support_points(tr: Trajectory) -> np.ndarray:
+    """(k, 2) world xy of the moving geoms that rest on the ground at the log's mean
+    posture (the feet): where a missing support can act; the start points of its fit."""
+    m = tr.model
+    d = mujoco.MjData(m)
+    d.qpos[tr.qadr] = tr.log.qpos.mean(axis=0)
+    mujoco.mj_kinematics(m, d)
+    top = ground_top(m)
+    colliding = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+    pts: list[np.ndarray] = []
+    for g in np.flatnonzero(colliding & (m.geom_bodyid != 0)):
+        near = any(np.linalg.norm(p - d.geom_xpos[g, :2]) < 0.02 for p in pts)
+        if lowest_point(m, d, g) < top + 0.02 and not near:
+            pts.append(d.geom_xpos[g, :2].copy())
+    if not pts:
+        raise ValueError("no geom rests on the ground at the log's mean posture: a missing support cannot act")
+    return np.array(pts)
+
+
 EFFECT_TYPES: tuple[type[Effect], ...] = (
     ActuatorDelay, SensorDelay, CoulombFriction, ViscousDamping, Armature, GainScale, TorqueSaturation,
-    Backlash, EncoderBias, MassScale, GroundFriction, ContactSoftness, GroundHeight, GroundTilt,
+    Backlash, EncoderBias, MassScale, ComShift, LoadFriction, StribeckFriction, GroundFriction, ContactSoftness,
+    GroundHeight, GroundTilt, SupportBox,
 )
 """Every effect of the library, in the order the report lists them."""
 
@@ -491,11 +715,9 @@ def library(tr: Trajectory, focus: str | None = None, families: tuple[str, ...] 
         if families is not None and kind.family not in families:
             continue
         variants = [kind()]
-        if n > 1 and kind.per_joint_allowed:
-            if focus is not None:
-                variants.append(kind(joints=(focus,)))
-            variants.append(kind(per_joint=True))
-        elif n > 1 and focus is not None and kind is MassScale:
+        if n > 1 and focus is not None and (kind.per_joint_allowed or kind.focus_allowed):
             variants.append(kind(joints=(focus,)))
+        if n > 1 and kind.per_joint_allowed:
+            variants.append(kind(per_joint=True))
         out.extend(v for v in variants if v.applicable(tr))
     return out

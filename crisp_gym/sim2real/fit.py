@@ -12,6 +12,7 @@ residuals inside a window are strongly correlated.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -52,7 +53,7 @@ class Combo:
     def inputs(self, x: np.ndarray, trajs: list[Trajectory]) -> SimInputs:
         """The models and signals of every trajectory with the effects applied at ``x``."""
         parts = self.split(x)
-        models, ctrl, qpos, qvel = [], [], [], []
+        models, ctrl, qpos, qvel, friction = [], [], [], [], []
         for tr in trajs:
             model = tr.model
             if any(e.touches_model for e in self.effects):
@@ -66,7 +67,17 @@ class Combo:
             ctrl.append(sig.ctrl)
             qpos.append(sig.qpos)
             qvel.append(sig.qvel)
-        return SimInputs(models, ctrl, qpos, qvel)
+            items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_friction]
+            friction.append(partial(_state_friction, items, tr, model, sig.ctrl) if items else None)
+        return SimInputs(models, ctrl, qpos, qvel, friction)
+
+
+def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, model, ctrl: np.ndarray,
+                    idx: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """The summed state-dependent friction of ``items`` at samples ``idx`` (a
+    :data:`~crisp_gym.sim2real.replay.FrictionFn` once bound to a trajectory)."""
+    u, enabled = ctrl[idx * tr.nsub], tr.enabled[idx]
+    return sum(e.friction(xe, tr, model, u, enabled, qpos, qvel) for e, xe in items)
 
 
 def residuals(replayer: Replayer, inputs: list[SimInputs]) -> np.ndarray:
@@ -95,7 +106,7 @@ class FitResult:
 class Fitter:
     """Levenberg-Marquardt over batched replays of a fixed set of windows."""
 
-    def __init__(self, replayer: Replayer, max_iter: int = 8) -> None:
+    def __init__(self, replayer: Replayer, max_iter: int = 15) -> None:
         self.rep = replayer
         self.max_iter = max_iter
         self.rollouts = 0
@@ -122,8 +133,17 @@ class Fitter:
         before = self.rollouts
         r_all = self._res(combo, starts)
         costs = self._cost(r_all)
-        best = int(np.argmin(costs))
-        x, r, cost = starts[best], r_all[best], costs[best]
+        best = None
+        for k in np.argsort(costs)[:max(e.refine for e in combo.effects) if combo.effects else 1]:
+            x, r, cost = self._descend(combo, starts[k], r_all[k], costs[k], lo, hi, step)
+            if best is None or cost < best[2]:
+                best = (x, r, cost)
+        x, r, _ = best
+        return FitResult(x=x, train_gap=gap_rms(r, self.rep.mask), rollouts=self.rollouts - before)
+
+    def _descend(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray, hi: np.ndarray,
+                 step: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Levenberg-Marquardt from ``x`` (with residual ``r`` and ``cost`` there)."""
         cols = self._columns(combo)
         mu = 1e-2
         for _ in range(self.max_iter):
@@ -155,7 +175,7 @@ class Fitter:
                 mu *= 100
                 if mu > 1e6:
                     break
-        return FitResult(x=x, train_gap=gap_rms(r, self.rep.mask), rollouts=self.rollouts - before)
+        return x, r, cost
 
     def confidence(self, combo: Combo, x: np.ndarray, z: float = 1.96) -> np.ndarray:
         """Half-widths of the ``z``-sigma confidence intervals of ``x`` (sandwich

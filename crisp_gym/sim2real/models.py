@@ -134,7 +134,11 @@ def load_go2_fixed_base(xml: str | Path, kp: float = GO2_KP, kd: float = GO2_KD)
     return load_go2_fixed_base_spec(xml, kp, kd).compile()
 
 
-HUMANOID_BENCH_JOINTS: tuple[str, ...] = ("L_Hip_y", "L_Knee_y", "L_Ankle_y", "R_Hip_y", "R_Knee_y", "R_Ankle_y")
+HUMANOID_BENCH_JOINTS: tuple[str, ...] = tuple(f"{side}_{part}_{axis}" for side in ("L", "R")
+                                                for part in ("Hip", "Knee", "Ankle", "Toe") for axis in "xyz")
+"""Every leg joint: with the pelvis welded the legs' state is then complete, so replay
+windows start from the whole state (an unlogged joint would restart at zero in every
+window, a gap no effect explains)."""
 FLOOR_GEOM = "floor"
 
 
@@ -143,7 +147,8 @@ def build_humanoid_bench_spec(penetration: float = 0.005) -> mujoco.MjSpec:
     ``penetration`` above the lowest foot point at rest, so that the feet touch it.
 
     A fixed pelvis keeps the contact cases (ground friction, softness, height, a missing
-    box) while making every replay window well posed without the root state.
+    box) while making every replay window well posed without the root state. The model
+    carries the parked placeholder of the ``support_box`` effect (:func:`add_support_slot`).
     """
     from crisp_gym.humanoid import ROOT_JOINT, HumanoidConfig, build_humanoid_spec
 
@@ -153,14 +158,14 @@ def build_humanoid_bench_spec(penetration: float = 0.005) -> mujoco.MjSpec:
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     colliding = [g for g in range(model.ngeom) if model.geom_contype[g] or model.geom_conaffinity[g]]
-    low = min(_lowest_point(model, data, g) for g in colliding)
+    low = min(lowest_point(model, data, g) for g in colliding)
     top = low + penetration
     spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[2.0, 2.0, 0.05],
                             pos=[0, 0, top - 0.05], contype=1, conaffinity=2, friction=[1.0, 0.005, 0.0001])
-    return spec
+    return add_support_slot(spec)
 
 
-def _lowest_point(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
+def lowest_point(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
     """Lowest world z of a sphere/capsule/box geom (others: centre minus bounding radius)."""
     size = model.geom_size[g]
     pos = data.geom_xpos[g]
@@ -177,3 +182,21 @@ def _lowest_point(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
 
 def build_humanoid_bench() -> mujoco.MjModel:
     return build_humanoid_bench_spec().compile()
+
+
+SUPPORT_SLOT = "support_slot"
+"""Name of the parked placeholder box the ``support_box`` effect moves into place."""
+
+
+def add_support_slot(spec: mujoco.MjSpec, half_size: tuple[float, float, float] = (0.2, 0.1, 0.1)) -> mujoco.MjSpec:
+    """Add the placeholder for a missing support: a box of ``half_size`` (m; the default,
+    40 x 20 cm, is a step or plank under a whole humanoid foot) on a static body of its own, parked far below the scene and colliding with nothing, so that the
+    nominal model is unchanged. A compiled model cannot gain geoms; the ``support_box``
+    effect moves this body (its geoms' bounding volumes move with it, which a geom of the
+    world body's would not) and switches the box on instead. Returns ``spec``."""
+    if any(g.name == SUPPORT_SLOT for g in spec.geoms):
+        return spec
+    body = spec.worldbody.add_body(name=SUPPORT_SLOT, pos=[0.0, 0.0, -100.0])
+    body.add_geom(name=SUPPORT_SLOT, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half_size), contype=0, conaffinity=0,
+                  rgba=[0.8, 0.5, 0.2, 1.0])
+    return spec

@@ -64,7 +64,8 @@ def _markdown(result: dict, figures: list[str]) -> str:
     elif verdict == "explained":
         lines.append(f"**Verdict: {sel['effect']}** explains the gap: held-out RMS {_fmt(result['gap_before'])} → "
                      f"{_fmt(result['gap_after_heldout'])} rad (shrink {100 * result['shrink']:.0f} %, "
-                     f"noise floor {_fmt(result['noise_floor'])} rad); margin over the runner-up "
+                     f"noise floor {_fmt(result['noise_floor'])} rad, {_fmt(result['noise_floor_best'])} rad "
+                     f"with the selected effect); margin over the runner-up "
                      f"({sel['runner_up']}): {_fmt(100 * (sel['margin_over_runner_up'] or 0), 3)} % in score.")
     else:
         lines.append(f"**Verdict: unexplained.** No effect in the library brings the held-out gap "

@@ -1,0 +1,219 @@
+"""Tests of the evaluation (``train/evaluate.py``): metrics against known answers, rollouts
+against the env, the policy file and ``crisp eval``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from tests.test_train import SMALL_MLP, _obs, clip_dir  # noqa: F401  (clip_dir is a fixture)
+from train.evaluate import (
+    accel_error,
+    evaluate,
+    jitter,
+    record_rollout,
+    rigid_align,
+    segment_mpjpe,
+    zero_policy,
+)
+
+
+def _pose(seed: int = 0, joints: int = 24) -> np.ndarray:
+    return np.random.default_rng(seed).normal(scale=0.4, size=(joints, 3))
+
+
+def _rigid(x: np.ndarray, seed: int) -> np.ndarray:
+    rotation = Rotation.random(random_state=seed)
+    return rotation.apply(x.reshape(-1, 3)).reshape(x.shape) + np.array([1.5, -2.0, 0.3])
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def test_mpjpe_of_a_constant_offset() -> None:
+    ref = np.stack([_pose(k) for k in range(150)])
+    pred = ref + np.array([0.03, 0.04, 0.0])  # 50 mm for every joint and frame
+    assert segment_mpjpe(pred, ref, "none") == pytest.approx(50.0)
+    # both alignments remove a translation
+    assert segment_mpjpe(pred, ref, "first_two") == pytest.approx(0.0, abs=1e-9)
+    assert segment_mpjpe(pred, ref, "segment") == pytest.approx(0.0, abs=1e-9)
+
+
+def test_drift_known_answers_per_alignment() -> None:
+    """A static pose drifting 1 mm per frame along x, over two 100-frame segments.
+
+    Unaligned: the mean offset, 99.5 mm. W (fit on frames 0 and 1 of each segment): the
+    residual at frame k of a segment is |k - 0.5| mm, mean 49.01 mm. WA (fit on the whole
+    segment): |k - 49.5| mm, mean 25 mm. The fitted rotation is the identity in both cases
+    (the frames are translated copies of one pose).
+    """
+    frames = 200
+    ref = np.broadcast_to(_pose(), (frames, 24, 3))
+    pred = ref + np.arange(frames)[:, None, None] * np.array([0.001, 0.0, 0.0])
+    assert segment_mpjpe(pred, ref, "none") == pytest.approx(99.5)
+    assert segment_mpjpe(pred, ref, "first_two") == pytest.approx(49.01, abs=1e-6)
+    assert segment_mpjpe(pred, ref, "segment") == pytest.approx(25.0, abs=1e-6)
+
+
+def test_wa_mpjpe_is_invariant_to_a_rigid_transform() -> None:
+    rng = np.random.default_rng(3)
+    ref = np.stack([_pose(k) for k in range(250)])  # segments of 100, 100 and 50 frames
+    pred = ref + rng.normal(scale=0.02, size=ref.shape)
+    moved = _rigid(pred, seed=4)
+    assert segment_mpjpe(moved, ref, "none") > 1000.0
+    assert segment_mpjpe(moved, ref, "segment") == pytest.approx(segment_mpjpe(pred, ref, "segment"), rel=1e-9)
+    # a rigidly moved copy of the reference has no error after either alignment
+    assert segment_mpjpe(_rigid(ref, seed=5), ref, "segment") == pytest.approx(0.0, abs=1e-6)
+    assert segment_mpjpe(_rigid(ref, seed=6), ref, "first_two") == pytest.approx(0.0, abs=1e-6)
+    # the least-squares fit cannot do worse (in the squared sense) than no alignment
+    aligned = rigid_align(pred, ref)
+    assert np.square(aligned - ref).sum() <= np.square(pred - ref).sum()
+
+
+def test_jitter_of_known_signals() -> None:
+    fps = 30.0
+    t = np.arange(60) / fps
+    c = 0.7
+    cubic = np.zeros((60, 24, 3))
+    cubic[..., 0] = (c * t ** 3)[:, None]  # jerk 6c everywhere; finite differences are exact on cubics
+    assert jitter(cubic, fps) == pytest.approx(6 * c, rel=1e-6)
+    linear = np.zeros((60, 2, 3))
+    linear[..., 2] = (1.3 * t)[:, None]
+    assert jitter(linear, fps) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="T >= 4"):
+        jitter(cubic[:3], fps)
+
+
+def test_accel_error_of_a_constant_acceleration() -> None:
+    fps, a = 30.0, 2.0  # m/s²
+    t = np.arange(40) / fps
+    ref = np.broadcast_to(_pose(), (40, 24, 3))
+    pred = ref + (0.5 * a * t ** 2)[:, None, None] * np.array([0.0, 1.0, 0.0])
+    # second difference of a t²/2 is a/fps² metres per frame²
+    assert accel_error(pred, ref) == pytest.approx(1000.0 * a / fps ** 2, rel=1e-9)
+    assert accel_error(ref, ref) == 0.0
+
+
+def test_metric_input_errors() -> None:
+    ref = np.zeros((10, 24, 3))
+    with pytest.raises(ValueError, match="same shape"):
+        segment_mpjpe(ref[:5], ref)
+    with pytest.raises(ValueError, match="align"):
+        segment_mpjpe(ref, ref, "procrustes")
+    with pytest.raises(ValueError, match=r"\(T, J, 3\)"):
+        accel_error(ref[..., :2], ref[..., :2])
+
+
+# ----------------------------------------------------------------------------- rollouts
+
+
+def test_rollout_matches_the_batched_env(clip_dir: Path) -> None:  # noqa: F811
+    """The recorded single-env rollout and the batched evaluation agree from frame 0."""
+    rollout = record_rollout(zero_policy, clip_dir, 0, progress=False)
+    batched = evaluate(zero_policy, clip_dir, [0, 30])
+    assert rollout.steps == batched.lengths[0]
+    assert rollout.rewards.sum() == pytest.approx(batched.returns[0], rel=1e-9)
+    assert rollout.success == bool(batched.success[0])
+    # the recorded positions are the ones the env measured its errors on
+    np.testing.assert_allclose(np.linalg.norm(rollout.body_pos - rollout.ref_body_pos, axis=-1).max(-1),
+                               rollout.max_body_error, atol=1e-9)
+    assert rollout.max_body_error[0] == pytest.approx(0.0, abs=1e-9)  # starts on the reference
+    metrics = rollout.metrics()
+    assert metrics["frames_tracked"] == rollout.steps
+    assert metrics["success"] == (metrics["frames_tracked"] == metrics["frames_total"])
+    assert metrics["mpjpe_mm"] <= 1000.0 * rollout.max_body_error.mean() + 1e-9
+    assert set(metrics["mean_reward_terms"]) == {"pos", "rot", "vel", "ang_vel", "height", "energy"}
+    assert rollout.torques.shape == (rollout.steps, 69)
+
+
+def test_rsi_start_frames_are_seeded(clip_dir: Path) -> None:  # noqa: F811
+    a = evaluate(zero_policy, clip_dir, 12, seed=7)
+    b = evaluate(zero_policy, clip_dir, 12, seed=7)
+    np.testing.assert_array_equal(a.start_frames, b.start_frames)
+    np.testing.assert_array_equal(a.returns, b.returns)
+    assert len(np.unique(a.start_frames)) > 1
+    # episodes end at the clip's last frame at the latest
+    assert np.all(a.start_frames + a.lengths <= 89)
+    assert a.fps > 0
+
+
+def test_rendered_rollout(clip_dir: Path) -> None:  # noqa: F811
+    rollout = record_rollout(zero_policy, clip_dir, 80, render=True, progress=False, render_width=64,
+                             render_height=48)
+    assert len(rollout.images) == rollout.steps + 1
+    assert rollout.images[0].shape == (48, 64, 3)
+
+
+# ----------------------------------------------------------------------------- policy file and CLI
+
+
+@pytest.fixture(scope="module")
+def untrained_run(clip_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
+    from tests.test_train import _tiny_config
+    from train.ppo import train
+
+    output = tmp_path_factory.mktemp("eval_run")
+    train(_tiny_config(clip_dir, output, frames=512, num_envs=4, steps_per_env=64))
+    return output
+
+
+def test_policy_file_round_trip(untrained_run: Path, tmp_path: Path) -> None:
+    from train.ppo import export_policy, load_policy, policy_training_stats
+
+    path = export_policy(untrained_run, tmp_path / "shipped", clip="walk")
+    from_checkpoint, cfg = load_policy(untrained_run)
+    from_file, file_cfg = load_policy(path.parent)
+    assert file_cfg.clip == "walk" and file_cfg.model == cfg.model
+    obs = _obs((6,), False, seed=1)
+    torch.testing.assert_close(from_file(*obs)[0], from_checkpoint(*obs)[0], rtol=0, atol=0)
+    stats = policy_training_stats(path)
+    assert stats["frames"] == 512 and stats["iterations"] == 2 and stats["wall_time_s"] > 0
+    assert path.stat().st_size < 0.5 * (untrained_run / "checkpoint.pt").stat().st_size
+    with pytest.raises(FileNotFoundError):
+        load_policy(tmp_path / "missing")
+    (tmp_path / "junk.pt").write_bytes(b"")
+    torch.save({"hello": 1}, tmp_path / "junk.pt")
+    with pytest.raises(ValueError, match="neither"):
+        load_policy(tmp_path / "junk.pt")
+
+
+def test_cli_writes_report_and_plots(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    from train.evaluate import main
+
+    out = tmp_path / "eval"
+    assert main([str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--episodes", "8", "--no-video"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["rsi"]["episodes"] == 8 and 0.0 <= report["rsi"]["success_rate"] <= 1.0
+    full = report["from_frame_0"]
+    for key in ("w_mpjpe_mm", "wa_mpjpe_mm", "mpjpe_mm", "jitter_m_s3", "accel_error_mm_frame2"):
+        assert np.isfinite(full[key]) and full[key] >= 0.0, key
+    assert report["training"]["frames"] == 512
+    assert (out / "tracking.png").stat().st_size > 0 and (out / "torques.png").stat().st_size > 0
+    assert not (out / "rollout.mp4").exists()
+    assert not list(out.glob("*.tmp*"))
+    with pytest.raises(ValueError, match="episodes"):
+        main([str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--episodes", "0"])
+
+
+def test_demo_reports_policy_and_pd_reference(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    from crisp_gym.demo import main
+
+    out = tmp_path / "demo"
+    assert main(["--clip", str(clip_dir), "--policy", str(untrained_run), "-o", str(out), "--episodes", "4",
+                 "--no-video"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["controller"] == "policy"
+    baseline = report["comparison"]["pd_reference"]
+    assert baseline["controller"] == "pd_reference" and baseline["rsi"]["episodes"] == 4
+    # the PD-reference row is the zero-residual rollout, recorded independently here
+    expected = record_rollout(zero_policy, clip_dir, 0, progress=False).metrics()
+    assert baseline["from_frame_0"]["frames_tracked"] == expected["frames_tracked"]
+    assert baseline["from_frame_0"]["w_mpjpe_mm"] == pytest.approx(expected["w_mpjpe_mm"])
+    # a clip without a shipped policy gets the PD-reference controller alone
+    assert main(["--clip", str(clip_dir), "-o", str(out), "--episodes", "2", "--no-video"]) == 0
+    assert json.loads((out / "report.json").read_text())["controller"] == "pd_reference"

@@ -1,0 +1,125 @@
+"""Package a trained run for shipping: the small policy file, its evaluation and its learning curve.
+
+    python -m train.ship RUN --clip NAME -o assets/policies/NAME
+
+writes into ``-o``:
+
+* ``policy.pt``: the actor (state dict, normaliser statistics, config, training totals; see
+  :func:`train.ppo.export_policy`), what ``crisp demo`` and ``crisp eval`` load;
+* ``progress.csv``: the run's training log;
+* ``learning_curve.png``: success rate and mean return of the episodes that ended in each
+  iteration, against training frames;
+* ``eval.json``: ``crisp eval``'s report of the shipped file (RSI starts and frame 0).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tyro
+
+
+@dataclass(frozen=True)
+class ShipArgs:
+    """Export a run's policy with its evaluation and learning curve.
+
+    Attributes:
+        run: training run directory (``checkpoint.pt`` and ``progress.csv``).
+        clip: clip name recorded in the policy (the run may name a machine-specific directory).
+        output: directory to write into (e.g. ``assets/policies/NAME``).
+        episodes: RSI episodes of the evaluation.
+        smooth: iterations in the learning curve's moving average.
+    """
+
+    run: tyro.conf.Positional[Path]
+    clip: str
+    output: Annotated[Path, tyro.conf.arg(aliases=("-o",))]
+    episodes: int = 100
+    smooth: int = 10
+
+
+def read_progress(path: str | Path) -> dict[str, np.ndarray]:
+    """A run's ``progress.csv`` as columns (empty cells become NaN)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no training log at {path}")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{path} has no rows")
+    return {key: np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
+            for key in rows[0]}
+
+
+def _moving_average(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over the last ``window`` finite values."""
+    out = np.full_like(x, np.nan)
+    for i in range(len(x)):
+        chunk = x[max(0, i - window + 1):i + 1]
+        chunk = chunk[np.isfinite(chunk)]
+        if len(chunk):
+            out[i] = chunk.mean()
+    return out
+
+
+def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str = "", smooth: int = 10) -> None:
+    """Success rate and mean return of the finished episodes against frames (raw and averaged)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = progress["frames"] / 1e6
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for ax, key, label in ((ax1, "success_rate", "success rate (RSI episodes)"), (ax2, "mean_return", "mean return")):
+        ax.plot(frames, progress[key], color="C0", alpha=0.3, linewidth=0.8)
+        ax.plot(frames, _moving_average(progress[key], smooth), color="C0", label=f"{smooth}-iteration mean")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    ax1.set_ylim(0, 1)
+    ax1.set_title(title)
+    ax1.legend()
+    ax2.set_xlabel("training frames (millions)")
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def ship(args: ShipArgs) -> dict:
+    """Write the files of the module docstring; returns the evaluation report."""
+    from train.evaluate import evaluate_policy, torch_policy, write_json
+    from train.ppo import export_policy, load_policy, policy_training_stats
+
+    progress_path = Path(args.run) / "progress.csv"
+    progress = read_progress(progress_path)
+    policy = export_policy(args.run, args.output, clip=args.clip)
+    shutil.copyfile(progress_path, args.output / "progress.csv")
+    plot_learning_curve(progress, args.output / "learning_curve.png", f"{args.clip}: PPO", args.smooth)
+    actor, cfg = load_policy(policy)
+    metrics, _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
+                                 scene_aware=cfg.scene_aware)
+    report = {"policy": policy.name, "clip": args.clip, "actor": cfg.model.actor,
+              "training": policy_training_stats(policy), **metrics}
+    write_json(report, args.output / "eval.json")
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m train.ship``: see :class:`ShipArgs`."""
+    args = tyro.cli(ShipArgs, args=argv, prog="python -m train.ship")
+    report = ship(args)
+    print(f"wrote {args.output}/policy.pt, progress.csv, learning_curve.png, eval.json; success from RSI starts "
+          f"{report['rsi']['success_rate']:.1%}, whole clip from frame 0: {report['from_frame_0']['success']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
