@@ -10,12 +10,11 @@ leaves a half-written clip.
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from crisp_gym.atomic import atomic_directory
 from crisp_gym.motion import Motion
 from crisp_gym.scene import Box, load_primitives, save_primitives, write_scene_xml
 
@@ -65,16 +64,12 @@ def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: di
     references into the directory being built (its argument) instead of the boxes' scene.
     """
     directory = Path(directory)
-    if directory.exists() and not overwrite:
-        raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
     meta = dict(meta or {})
     meta.setdefault("name", directory.name)
     meta.update(fps=motion.fps, num_frames=motion.num_frames,
                 num_primitives=len(boxes),
                 num_contact_primitives=sum(b.source == "contact" for b in boxes))
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
-    try:
+    with atomic_directory(directory, overwrite) as tmp:
         if write_scene is None:
             write_scene_xml(boxes, tmp / "scene.xml")
         else:
@@ -82,17 +77,6 @@ def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: di
         motion.save(tmp / "motion.npz")
         save_primitives(boxes, tmp / "primitives.json")
         (tmp / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
-        if directory.exists():
-            old = directory.with_name(f".{directory.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            directory.rename(old)
-            tmp.rename(directory)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(directory)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return directory
 
 

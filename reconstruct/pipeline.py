@@ -21,16 +21,14 @@ human.
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
-import numpy as np
 import tyro
 
+from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
@@ -159,21 +157,11 @@ def reconstruct(frames: Frames, motion: MotionInput | None = None, config: Recon
 
 def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bool = False) -> Path:
     """A scene-only directory (no motion): ``scene.xml``, ``primitives.json``, ``meta.json``, atomically."""
-    directory = Path(directory)
-    if directory.exists() and not overwrite:
-        raise FileExistsError(f"{directory} exists; pass overwrite=True (--overwrite) to replace it")
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
-    try:
+    with atomic_directory(directory, overwrite) as tmp:
         write_scene_xml(boxes, tmp / "scene.xml")
         save_primitives(boxes, tmp / "primitives.json")
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
-        if directory.exists():
-            shutil.rmtree(directory)
-        tmp.rename(directory)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return directory
+    return Path(directory)
 
 
 @dataclass

@@ -41,8 +41,6 @@ Camera views (:data:`VIEWS`):
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -55,6 +53,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter, minimum_filter, zoo
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.metrics import box_signed_distance, support_tops
@@ -652,11 +651,7 @@ def write_synth_input(directory: str | Path, video: SynthVideo, overwrite: bool 
     write never leaves a half-written input.
     """
     directory = Path(directory)
-    if directory.exists() and not overwrite:
-        raise FileExistsError(f"{directory} exists; pass overwrite=True to replace it")
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
-    try:
+    with atomic_directory(directory, overwrite) as tmp:
         frames = video.frames
         float16 = bool(video.meta.get("config", {}).get("noise", {}).get("float16", False))
         with open(tmp / "input.npz", "wb") as f:
@@ -669,12 +664,6 @@ def write_synth_input(directory: str | Path, video: SynthVideo, overwrite: bool 
                  scale=np.float64(video.scale), intrinsic=frames.intrinsic)
         np.savez(gt / "contacts.npz", frame=video.contacts["frame"], body=video.contacts["body"],
                  point=video.contacts["point"], prob=np.ones(len(video.contacts["frame"])))
-        if directory.exists():
-            shutil.rmtree(directory)
-        tmp.rename(directory)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return directory
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from crisp_gym.export.atomic import atomic_path
+from crisp_gym.atomic import atomic_path
 from crisp_gym.scene import Box
 
 SOURCE_RGBA = {"planar": (0.45, 0.6, 0.85, 1.0), "contact": (0.9, 0.55, 0.3, 1.0)}

@@ -39,7 +39,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from crisp_gym.export.atomic import atomic_path
+from crisp_gym.atomic import atomic_path
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics, hinge_angles_to_rotations
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS

@@ -25,7 +25,7 @@ from torch import nn
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.tracking import PROPRIO_DIM, TARGET_DIM, hinge_ranges
 from crisp_gym.export.actuators import actuator_table
-from crisp_gym.export.atomic import atomic_path, write_text
+from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid
 
 POLICY_FORMATS = ("onnx", "torchscript")
