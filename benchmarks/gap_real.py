@@ -5,7 +5,7 @@
 * Go2 fixed base: first 70 % to fit, last 30 % to test; PD-tracking lag vs transport
   delay per joint and the dominant effect per joint.
 
-    python benchmarks/gap_real.py --out /tmp/gap_real
+    python benchmarks/gap_real.py --out gap_real
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def go2(out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default="/tmp/gap_real")
+    ap.add_argument("--out", default="gap_real")
     args = ap.parse_args()
     if not DATA.is_dir():
         raise SystemExit(f"real data not found at {DATA}")

@@ -60,6 +60,7 @@ class BenchConfig:
         p_none: share of cases without any effect.
         p_outside: share of cases with an effect outside the library.
         go2_xml: the Go2 MJCF.
+        families: draw in-library effects of these families only (empty: all).
     """
 
     cases: int = 42
@@ -69,6 +70,7 @@ class BenchConfig:
     p_none: float = 0.12
     p_outside: float = 0.12
     go2_xml: Path = GO2_XML
+    families: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -155,7 +157,9 @@ def draw_truth(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Benc
             return {"family": "outside", "kind": kind, "joint": joint or sc.joints[0],
                     "stiffness": float(rng.uniform(0.3, 0.6)), "offset": float(rng.uniform(0.3, 0.6))}
         return {"family": "outside", "kind": kind, "tau": float(rng.uniform(0.03, 0.06))}
-    kinds = [k for k in fx.EFFECT_TYPES if k().applicable(tr)]
+    kinds = [k for k in fx.EFFECT_TYPES if k().applicable(tr) and (not cfg.families or k.family in cfg.families)]
+    if not kinds:
+        raise ValueError(f"no effect of families {cfg.families} applies to the {sc.name} model")
     kind = kinds[int(rng.integers(len(kinds)))]
     local = joint is not None and (kind.per_joint_allowed or kind.focus_allowed)
     effect = kind(joints=(joint,)) if local else kind()

@@ -52,6 +52,8 @@ class Bench:
     noise_scale: tuple[float, ...] = (1.0,)
     """Multiples of the encoder noise to sweep (signal-to-noise)."""
     models: tuple[str, ...] = ("servo", "go2", "humanoid")
+    families: tuple[str, ...] = ()
+    """Draw in-library effects of these families only (default: all)."""
 
 
 def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjModel]:
@@ -87,8 +89,8 @@ def run_diagnose(args: Diagnose) -> int:
 def run_bench(args: Bench) -> int:
     from crisp_gym.sim2real.bench import BenchConfig, run_bench as bench
 
-    summary = bench(BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale, models=args.models),
-                    args.out)
+    summary = bench(BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale, models=args.models,
+                                families=args.families), args.out)
     print(json.dumps(summary, indent=1))
     return 0
 
