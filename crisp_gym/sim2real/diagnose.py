@@ -128,7 +128,7 @@ def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, dr
         r = residuals(srep, [combo.inputs(x, trajs)])[0]
         floors.append(np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum()))
     overall = [float(np.mean(f**2)) for f in floors]
-    return floors[int(np.argsort(overall)[int(round(quantile * (len(floors) - 1)))])]
+    return floors[int(np.argsort(overall)[round(quantile * (len(floors) - 1))])]
 
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,

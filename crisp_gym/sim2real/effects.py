@@ -655,8 +655,9 @@ class SupportBox(_GroundEffect):
     def params(self, tr: Trajectory) -> list[Param]:
         xy = support_points(tr)
         lo, hi = xy.min(axis=0) - 0.15, xy.max(axis=0) + 0.15
-        return [Param("height", 0.0, 0.0, 0.1, 2e-4, "m"), Param("x", float(xy[0, 0]), float(lo[0]), float(hi[0]), 5e-4, "m"),
-                Param("y", float(xy[0, 1]), float(lo[1]), float(hi[1]), 5e-4, "m")]
+        # Coarse difference steps: contacts with the box's edges make the cost rugged at the mm scale.
+        return [Param("height", 0.0, 0.0, 0.1, 5e-4, "m"), Param("x", float(xy[0, 0]), float(lo[0]), float(hi[0]), 5e-3, "m"),
+                Param("y", float(xy[0, 1]), float(lo[1]), float(hi[1]), 5e-3, "m")]
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
         # A grid: the box's edges meet the moving feet in many places (local minima).

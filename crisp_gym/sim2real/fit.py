@@ -106,9 +106,10 @@ class FitResult:
 class Fitter:
     """Levenberg-Marquardt over batched replays of a fixed set of windows."""
 
-    def __init__(self, replayer: Replayer, max_iter: int = 15) -> None:
+    def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2) -> None:
         self.rep = replayer
         self.max_iter = max_iter
+        self.restarts = restarts
         self.rollouts = 0
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
@@ -136,16 +137,23 @@ class Fitter:
         best = None
         for k in np.argsort(costs)[:max(e.refine for e in combo.effects) if combo.effects else 1]:
             x, r, cost = self._descend(combo, starts[k], r_all[k], costs[k], lo, hi, step)
+            for _ in range(self.restarts):  # a fresh damping: LM stalls early on rugged (contact) costs
+                x2, r2, c2 = self._descend(combo, x, r, cost, lo, hi, step, patience=1)
+                if c2 >= cost * (1 - 1e-3):
+                    break
+                x, r, cost = x2, r2, c2
             if best is None or cost < best[2]:
                 best = (x, r, cost)
         x, r, _ = best
         return FitResult(x=x, train_gap=gap_rms(r, self.rep.mask), rollouts=self.rollouts - before)
 
     def _descend(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray, hi: np.ndarray,
-                 step: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """Levenberg-Marquardt from ``x`` (with residual ``r`` and ``cost`` there)."""
+                 step: np.ndarray, patience: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
+        """Levenberg-Marquardt from ``x`` (with residual ``r`` and ``cost`` there); stops
+        after ``max_iter`` iterations, a negligible gain, or ``patience`` failed steps in a row."""
         cols = self._columns(combo)
         mu = 1e-2
+        failures = 0
         for _ in range(self.max_iter):
             h = np.where(x + step <= hi, step, -step)
             if cols is not None:
@@ -169,11 +177,13 @@ class Fitter:
                 improvement = (cost - ct[k]) / cost
                 x, r, cost = trials[k], rt[k], ct[k]
                 mu = (mu / 10, mu, mu * 10)[k] / 3
+                failures = 0
                 if improvement < 1e-4:
                     break
             else:
                 mu *= 100
-                if mu > 1e6:
+                failures += 1
+                if failures >= patience:
                     break
         return x, r, cost
 
