@@ -32,8 +32,9 @@ from crisp_gym.registry import resolve_clip
 from train.models import ModelConfig
 from train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
 
-BASELINE = dict(num_envs=64, steps_per_env=128, minibatch_size=8192, epochs=2, scene_aware=False,
-                model=ModelConfig(actor="mlp", mlp_actor_hidden=(512, 512), critic_hidden=(1024, 512)))
+BASELINE = {"num_envs": 64, "steps_per_env": 128, "minibatch_size": 8192, "epochs": 2, "scene_aware": False,
+            "torch_threads": 0,
+            "model": ModelConfig(actor="mlp", mlp_actor_hidden=(512, 512), critic_hidden=(1024, 512))}
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ class Args:
         steps_per_env: override the profile's roll-out length (0: keep).
         epochs: override the profile's PPO epochs (0: keep).
         device: torch device (``auto``: CUDA when available).
+        torch_threads: override the profile's torch intra-op threads (0: keep).
         seed: run seed.
     """
 
@@ -66,6 +68,7 @@ class Args:
     steps_per_env: int = 0
     epochs: int = 0
     device: str = "auto"
+    torch_threads: int = 0
     seed: int = 0
 
 
@@ -103,7 +106,11 @@ def measure(cfg: TrainConfig, warmup: int) -> dict[str, float]:
         batches.append(env.vec_env.batch)
         return env
 
-    result = train(cfg, env_fn=env_fn)
+    threads = torch.get_num_threads()
+    try:
+        result = train(cfg, env_fn=env_fn)
+    finally:
+        torch.set_num_threads(threads)  # train() sets the process-wide count from the config
     rows = result.history[warmup:]
     if not rows:
         raise ValueError("no measured iterations: raise --iterations")
@@ -123,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     args = tyro.cli(Args, args=argv)
     base = {"cpu": cpu_profile, "paper": paper_profile}[args.profile]()
     overrides = {k: v for k, v in (("num_envs", args.num_envs), ("steps_per_env", args.steps_per_env),
-                                   ("epochs", args.epochs)) if v}
-    print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, profile: {args.profile}")
+                                   ("epochs", args.epochs), ("torch_threads", args.torch_threads)) if v}
+    default_threads = torch.get_num_threads()
+    print(f"torch threads by default: {default_threads}, device: {args.device}, profile: {args.profile}")
     variants = [("baseline", "blind", replace(base, **BASELINE))] if args.baseline else []
     variants += [(actor, scene, replace(base, scene_aware=scene == "aware", model=replace(base.model, actor=actor),
                                         **overrides))
@@ -142,14 +150,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {scene:5s} {name:11s} {stats['fps']:8.0f} frames/s", flush=True)
     reference = rows[0][3]["fps"] if args.baseline else None
     print()
-    print("| variant | actor | critic | envs × steps | minibatch × epochs | FPS | × baseline | physics | observation "
-          "| inference | update |")
-    print("|---|---|---|---|---|---:|---:|---:|---:|---:|---:|")
+    print("| variant | actor | critic | envs × steps | minibatch × epochs | torch threads | FPS | × baseline | physics "
+          "| observation | inference | update |")
+    print("|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for name, scene, cfg, s in rows:
         actor = cfg.model.actor + (str(cfg.model.mlp_actor_hidden) if cfg.model.actor == "mlp" else "")
         ratio = f"{s['fps'] / reference:.2f}" if reference else "–"
         print(f"| {name if name == 'baseline' else 'scene-' + scene} | {actor} | {cfg.model.critic_hidden} | "
-              f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | {s['fps']:.0f} | {ratio} | "
+              f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | "
+              f"{cfg.torch_threads or default_threads} | {s['fps']:.0f} | {ratio} | "
               f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
     return 0
 

@@ -217,3 +217,17 @@ def test_demo_reports_policy_and_pd_reference(untrained_run: Path, clip_dir: Pat
     # a clip without a shipped policy gets the PD-reference controller alone
     assert main(["--clip", str(clip_dir), "-o", str(out), "--episodes", "2", "--no-video"]) == 0
     assert json.loads((out / "report.json").read_text())["controller"] == "pd_reference"
+
+
+def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    from train.ship import ShipArgs, read_progress, ship
+
+    out = tmp_path / "shipped"
+    report = ship(ShipArgs(run=untrained_run, clip=str(clip_dir), output=out, episodes=4, smooth=2))
+    assert {p.name for p in out.iterdir()} == {"policy.pt", "progress.csv", "learning_curve.png", "eval.json"}
+    assert json.loads((out / "eval.json").read_text()) == json.loads(json.dumps(report))
+    original, shipped = read_progress(untrained_run / "progress.csv"), read_progress(out / "progress.csv")
+    assert list(shipped) == list(original)
+    for key in original:
+        np.testing.assert_allclose(shipped[key], original[key], rtol=1e-5, equal_nan=True)
+    np.testing.assert_array_equal(shipped["frames"], original["frames"])  # integers stay exact

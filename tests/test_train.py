@@ -191,9 +191,10 @@ def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
 def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  # noqa: F821
     from train.ppo import cpu_profile
 
+    # unscaled rewards: the learning rates here suit the critic regressing the env's own returns
     base = dict(clip=str(clip_dir), output=output, num_envs=16, steps_per_env=32, minibatch_size=256, epochs=4,
-                actor_lr=1e-4, critic_lr=1e-3, model=SMALL_MLP, checkpoint_every=4, progress=False, seed=3,
-                torch_threads=2)
+                actor_lr=1e-4, critic_lr=1e-3, reward_scale=1.0, model=SMALL_MLP, checkpoint_every=4, progress=False,
+                seed=3, torch_threads=2)
     return cpu_profile(**{**base, **overrides})
 
 
@@ -346,7 +347,18 @@ def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> No
     logger = RunLogger(tmp_path, append=True, iteration=3)
     logger.log({"iteration": 4, "frames": 400, "time_s": 7.0})
     logger.close()
-    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    with open(tmp_path / "progress.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3, 4]
     # the resumed segment's clock restarts: wall time adds the segments (30 s + 7 s)
     assert run_wall_time(tmp_path / "progress.csv") == pytest.approx(37.0)
+
+
+def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import load_checkpoint, train
+
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=256, actor_lr=1e-4, critic_lr=1e-3)
+    train(cfg)
+    train(replace(cfg, frames=512, actor_lr=3e-5, critic_lr=2e-4, resume=True))
+    groups = load_checkpoint(tmp_path)["optimizer"]["param_groups"]
+    assert [g["lr"] for g in groups] == [3e-5, 2e-4]

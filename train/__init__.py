@@ -5,7 +5,10 @@
 * :mod:`train.env`: a native TorchRL ``EnvBase`` around the batched ``CrispTrack-v0``.
 * :mod:`train.ppo`: :class:`~train.ppo.TrainConfig`, :func:`~train.ppo.train` and the CLI
   entry point :func:`~train.ppo.main`.
-* :mod:`train.evaluate`: deterministic roll-outs of a policy from chosen start frames.
+* :mod:`train.evaluate`: ``crisp eval``: deterministic roll-outs of a policy, success rates,
+  W-/WA-MPJPE, jitter, acceleration error, plots and video.
+* :mod:`train.ship`: packages a run (policy file, log, learning curve, evaluation) for
+  ``assets/policies``.
 
 Only :mod:`train.ppo` and :mod:`train.env` import TorchRL; the models are plain torch.
 """

@@ -10,7 +10,7 @@ rolls the policy's mean action (no exploration noise) out in ``CrispTrack-v0`` t
   is enough). The tracking metrics, the plots and the video come from it.
 
 Metrics (paper, Sec. 4, after WHAM/TRAM), over the 24 body origins (the joints) of the
-simulated humanoid against the reference, in metres in, reported in millimetres:
+simulated humanoid against the reference (positions in metres, errors in millimetres):
 
 * ``w_mpjpe_mm``: W-MPJPE₁₀₀, the clip split into 100-frame segments, each rigidly aligned
   (rotation + translation) to the reference on its first two frames;
@@ -162,8 +162,8 @@ class EvalResult:
     returns: np.ndarray
     lengths: np.ndarray
     success: np.ndarray
-    start_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    seconds: float = float("nan")
+    start_frames: np.ndarray
+    seconds: float
 
     @property
     def mean_return(self) -> float:
@@ -204,9 +204,9 @@ def evaluate(actor: nn.Module | Policy, clip: str | os.PathLike, start_frames: i
         count, options = int(start_frames), {}
     else:
         frames = np.asarray(start_frames, dtype=int)
-        count, options = len(frames), {"start_frame": frames}
         if frames.ndim != 1:
             raise ValueError("start_frames must be a number of episodes or a 1-D list of frame indices")
+        count, options = len(frames), {"start_frame": frames}
     if count < 1:
         raise ValueError(f"at least one episode is needed, got {count}")
     env = gym.make_vec("CrispTrack-v0", num_envs=count, vectorization_mode="vector_entry_point", clip=clip,
@@ -436,7 +436,7 @@ class EvalArgs:
         device: torch device of the policy.
     """
 
-    policy: tyro.conf.Positional[Path]
+    policy: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="RUN_OR_CHECKPOINT")]
     clip: str | None = None
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/eval")
     episodes: int = 100

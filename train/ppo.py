@@ -144,26 +144,32 @@ def paper_profile(**overrides: Any) -> TrainConfig:
 def cpu_profile(**overrides: Any) -> TrainConfig:
     """A setup for a small CPU machine (aimed at 2 cores), where the PPO update, not physics, is the cost.
 
-    Differences from the paper's profile and why (numbers from ``flat_walk`` runs on 2 shared
-    cores; see ``docs/training.md``):
+    Differences from the paper's profile and why (measured on ``flat_walk`` on 2 cores shared
+    with other jobs; the runs are described in ``docs/training.md``):
 
     * small MLPs: actor (256, 256), critic (512, 256). Both read the 2,521 observation
       features, so their first layers are most of the update's cost; these cost about a
       third of a (512, 512) actor with the paper's (1024, 512) critic, and the policy file
       stays under 3 MB;
-    * 64 envs × 32 steps = 2,048 frames per iteration, 2 epochs of 1,024-sample minibatches.
-      With σ = 0.055 over 69 dimensions a shift of the mean by 0.004 rad already costs a KL
-      of ~0.15, so PPO's clip, not the learning rate, bounds each iteration's step; what
-      makes a frame budget go further is *more, smaller* iterations. 4 epochs over
-      4,096 frames clipped 55–60 % of the samples (KL 0.10–0.20), 2 epochs over 2,048 about
-      30 % (KL 0.02–0.03) at half the update cost per frame;
-    * actor lr 1e-4 (paper 2e-5): at 2e-5 with 2 steps per 8,192 frames, KL stayed at
-      ~0.001 and the clip fraction at ~0.003, i.e. the policy hardly moved (return flat over
-      130 K frames); critic lr 5e-4;
-    * training rewards scaled by 0.05 (values of O(1–10) instead of O(100) for the critic)
-      and the energy penalty capped at 0.5 per step: unbounded, it reaches −2 per step in a
-      fall, more than all tracking terms, and makes ending an episode early pay. The logged
-      returns and the evaluation use the env's own reward;
+    * 64 envs × 16 steps = 1,024 frames per iteration, 2 epochs of 512-sample minibatches.
+      With σ = 0.055 over 69 dimensions, moving the mean by 0.004 rad already costs a KL of
+      ~0.15, so PPO's clip rather than the learning rate bounds each iteration's step, and a
+      frame budget goes further in more, smaller iterations: 4 epochs over 4,096 frames
+      clipped 50–60 % of the samples at KL 0.10–0.20; 2 epochs over 1,024 frames clip
+      ~16 % at KL ~0.02 with actor lr 3e-5, at half the update cost per frame;
+    * actor lr 3e-5 (paper 2e-5, but 4 gradient steps per 1,024 frames instead of 40 per
+      65,536). The previous profile (2e-5, 2 steps per 8,192 frames) left KL at ~0.001 and the
+      clip fraction at ~0.003: the return stayed flat over 130 K frames. 1e-4 clipped 42–46 %;
+      from the same state, 300 K frames later its mean return was 15 % below 3e-5's. Critic
+      lr 5e-4;
+    * the rewards PPO learns from are scaled by 0.05 (values of O(1–10) instead of O(100) for
+      the critic) and the energy penalty is capped at 2 per step. Unbounded, it reaches
+      −2…−5 per step in a fall, more than all tracking terms together, and ending the
+      episode early starts to pay. A cap of 0.5 was too low: the policy learned to survive
+      longer while spending −0.6…−0.8 per step, where the capped penalty gives no gradient.
+      Logged returns and evaluations use the env's own reward;
+    * one torch thread: on a busy 2-core machine a second thread made the per-step forward
+      pass ~5× and the small-minibatch update ~2× slower;
     * a smaller PointNet (per-point widths 32, 64 instead of 64, 128, 256): with 128 points
       per sample the paper-sized one made the scene-aware update ~3× slower than the
       scene-blind one;
@@ -172,8 +178,9 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     Residual actions (the env's default) are kept: an untrained policy already tracks the
     reference pose with its PD targets, which matters most when few frames are affordable.
     """
-    base = TrainConfig(num_envs=64, steps_per_env=32, minibatch_size=1024, epochs=2, actor_lr=1e-4,
-                       critic_lr=5e-4, reward_scale=0.05, energy_cap=0.5, frames=20_000_000, checkpoint_every=10,
+    base = TrainConfig(num_envs=64, steps_per_env=16, minibatch_size=512, epochs=2, actor_lr=3e-5,
+                       critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
+                       torch_threads=1,
                        model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(512, 256),
                                          pointnet_hidden=(32, 64)))
     return replace(base, **overrides)
@@ -357,7 +364,8 @@ def export_policy(run: str | Path, output: str | Path, clip: str | None = None) 
         clip: clip name to record in the config instead of the run's (e.g. a registered name
             in place of a machine-specific directory).
     """
-    state = load_checkpoint(run)
+    checkpoint = Path(run) / CHECKPOINT_NAME if Path(run).is_dir() else Path(run)
+    state = load_checkpoint(checkpoint)
     config = dict(state["config"])
     if clip is not None:
         config["clip"] = clip
@@ -366,7 +374,7 @@ def export_policy(run: str | Path, output: str | Path, clip: str | None = None) 
         "kind": "policy",
         "config": config,
         "actor": state["actor"],
-        "training": policy_training_stats(run),
+        "training": policy_training_stats(checkpoint),
     }
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
@@ -584,6 +592,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         agent.actor.load_state_dict(saved["actor"])
         agent.critic.load_state_dict(saved["critic"])
         optimizer.load_state_dict(saved["optimizer"])
+        # the saved param groups carry the old learning rates: the config's must win on resume
+        for group, lr in zip(optimizer.param_groups, (cfg.actor_lr, cfg.critic_lr)):
+            group["lr"] = lr
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])
 
@@ -601,7 +612,13 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
+            update_threads = torch.get_num_threads()
+            if device.type == "cpu":
+                # one step's forward pass is too small to split across threads: with two
+                # threads on a busy 2-core machine it took 5x as long as with one
+                torch.set_num_threads(1)
             data = next(batches)  # (num_envs, steps_per_env)
+            torch.set_num_threads(update_threads)
             collect_s = time.perf_counter() - collect_start
             env_s = env.env_time - env_before
 

@@ -6,7 +6,7 @@ writes into ``-o``:
 
 * ``policy.pt``: the actor (state dict, normaliser statistics, config, training totals; see
   :func:`train.ppo.export_policy`), what ``crisp demo`` and ``crisp eval`` load;
-* ``progress.csv``: the run's training log;
+* ``progress.csv``: the run's training log (6 significant digits);
 * ``learning_curve.png``: success rate and mean return of the episodes that ended in each
   iteration, against training frames;
 * ``eval.json``: ``crisp eval``'s report of the shipped file (RSI starts and frame 0).
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -41,7 +40,7 @@ class ShipArgs:
     clip: str
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))]
     episodes: int = 100
-    smooth: int = 10
+    smooth: int = 50
 
 
 def read_progress(path: str | Path) -> dict[str, np.ndarray]:
@@ -55,6 +54,19 @@ def read_progress(path: str | Path) -> dict[str, np.ndarray]:
         raise ValueError(f"{path} has no rows")
     return {key: np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
             for key in rows[0]}
+
+
+def write_progress(progress: dict[str, np.ndarray], path: Path) -> None:
+    """Columns back to CSV with 6 significant digits (the training log's full precision
+    doubles the file for nothing a learning curve shows); NaN becomes an empty cell."""
+    keys = list(progress)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(keys)
+        for row in zip(*(progress[k] for k in keys)):
+            writer.writerow(["" if np.isnan(v) else str(int(v)) if v == int(v) else f"{v:.6g}" for v in row])
+    os.replace(tmp, path)
 
 
 def _moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -101,7 +113,7 @@ def ship(args: ShipArgs) -> dict:
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)
     policy = export_policy(args.run, args.output, clip=args.clip)
-    shutil.copyfile(progress_path, args.output / "progress.csv")
+    write_progress(progress, args.output / "progress.csv")
     plot_learning_curve(progress, args.output / "learning_curve.png", f"{args.clip}: PPO", args.smooth)
     actor, cfg = load_policy(policy)
     metrics, _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
