@@ -19,8 +19,8 @@ first camera's frame; an HMR method (GVHMR) gives the person in metres in each c
    search is near the cameras' path;
 4. **floor at z = 0**: the world's z axis is that normal, its origin the floor point under the
    first frame's pelvis (or under the first camera), its x axis the first camera's view
-   direction along the floor. Where the floor near the person was rarely in view, the person's
-   feet, which touch it, set its height instead.
+   direction along the floor. Where the floor near the person was rarely in view, or only
+   metres away, the person's feet, which touch it, set its height instead.
 
 The result is the aligned :class:`Frames` (metres, person removed), the motion in the world,
 and an :class:`Alignment` record with the diagnostics.
@@ -87,6 +87,9 @@ class AlignConfig:
             fraction of the searched frames (it was barely seen where the person walks: the view
             cut it off), its height comes from the person's feet instead (their lowest 5 %). When
             it is not seen near the person at all, its tilt comes from the floor near the cameras.
+        floor_near_distance: ... likewise when the refitted floor points lie, in the median,
+            farther than this from the pelvis path along the floor (m): a camera framing the
+            upper body sees the floor only metres away, where a few-% depth error is cm of height.
         seed: seed of RANSAC's sampling.
     """
 
@@ -115,6 +118,7 @@ class AlignConfig:
     floor_min_fraction: float = 0.3
     min_floor_points: int = 100
     floor_seen_fraction: float = 0.75
+    floor_near_distance: float = 1.5
     seed: int = 0
 
 
@@ -327,6 +331,14 @@ def _cloud(per_frame: list[np.ndarray], cfg: AlignConfig) -> tuple[np.ndarray, n
     return np.asarray(cloud.points), np.asarray(cloud.normals)
 
 
+def _floor_axes(normal: np.ndarray) -> np.ndarray:
+    """(2, 3) two orthonormal directions along the plane of unit ``normal``."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    first = np.cross(normal, helper)
+    first /= np.linalg.norm(first)
+    return np.stack([first, np.cross(normal, first)])
+
+
 def _fit_plane(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares plane (unit normal along ``up``, offset) through ``points``."""
     centre = points.mean(axis=0)
@@ -366,9 +378,9 @@ def _ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, cfg: Align
 
 
 def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: float, up: np.ndarray,
-                      cfg: AlignConfig) -> tuple[np.ndarray, float, int]:
-    """The floor refitted frame by frame, then combined: the count-weighted mean normal and the
-    median offset. A monocular depth map's scale errs per frame, which moves that frame's floor
+                      cfg: AlignConfig) -> tuple[np.ndarray, float, list[np.ndarray]]:
+    """The floor refitted frame by frame, then combined: the count-weighted mean normal, the
+    median offset, and each refitted frame's floor points. A monocular depth map's scale errs per frame, which moves that frame's floor
     along the view (a few cm); a plane fitted to all frames at once would sit in whichever
     frames are densest, while the median over frames sits where most frames put it."""
     normals, weights, kept = [], [], []
@@ -387,10 +399,10 @@ def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: f
             weights.append(len(inliers))
             kept.append(inliers)
     if not normals:
-        return normal, offset, 0
+        return normal, offset, []
     normal = np.average(normals, axis=0, weights=weights)
     normal /= np.linalg.norm(normal)
-    return normal, float(np.median([-np.median(p @ normal) for p in kept])), len(normals)
+    return normal, float(np.median([-np.median(p @ normal) for p in kept])), kept
 
 
 def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchors: np.ndarray, radius: float,
@@ -419,10 +431,15 @@ def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchor
                          f"of the up direction {np.round(up_prior, 3).tolist()}")
     largest = max(p["points"] for p in planes)
     floor = min((p for p in planes if p["points"] >= cfg.floor_min_fraction * largest), key=lambda p: p["height"])
-    normal, offset, frames_used = _refine_per_frame(per_frame, floor["normal"], floor["offset"], up_prior, cfg)
+    normal, offset, kept = _refine_per_frame(per_frame, floor["normal"], floor["offset"], up_prior, cfg)
     searched = min(cfg.floor_frames, frames.num_frames)
+    # how far from the anchors the floor was seen, along the floor: a floor seen only metres
+    # away sets its height less reliably than the feet do
+    tree = cKDTree(np.asarray(anchors, dtype=float).reshape(-1, 3) @ _floor_axes(normal).T)
+    distance = (float(np.median(tree.query(np.concatenate(kept) @ _floor_axes(normal).T)[0])) if kept
+                else float("inf"))
     diagnostics = {
-        "floor_frames": frames_used, "floor_frames_searched": searched, "floor_points": floor["points"], "cloud_points": len(points),
+        "floor_frames": len(kept), "floor_distance_m": distance, "floor_frames_searched": searched, "floor_points": floor["points"], "cloud_points": len(points),
         "up_prior_to_floor_deg": float(np.degrees(np.arccos(np.clip(normal @ up_prior, -1, 1)))),
         "planes": [{"height": round(p["height"], 4), "points": p["points"],
                     "tilt_deg": round(float(np.degrees(np.arccos(np.clip(p["normal"] @ up_prior, -1, 1)))), 2)}
@@ -513,9 +530,11 @@ def align(frames: Frames, motion: MotionInput | None = None, config: AlignConfig
     if motion_cam is not None:
         world_motion = transform_motion(motion_cam, np.einsum("ij,tjk->tik", world_from_input, poses))
         feet = float(np.percentile(foot_sole_heights(world_motion, mesher.model), 5))
-        if diagnostics["floor_frames"] < cfg.floor_seen_fraction * diagnostics["floor_frames_searched"]:
-            # The floor under the person was rarely in view (only far, noisy floor was): the
-            # feet, which touch it, set its height; its tilt still comes from the scene.
+        rarely_seen = diagnostics["floor_frames"] < cfg.floor_seen_fraction * diagnostics["floor_frames_searched"]
+        if rarely_seen or diagnostics["floor_distance_m"] > cfg.floor_near_distance:
+            # The floor under the person was rarely in view, or only metres away (far depth is
+            # the noisiest): the feet, which touch it, set its height; its tilt still comes
+            # from the scene.
             world_from_input[2, 3] -= feet
             offset -= feet
             world_motion = world_motion.translated([0.0, 0.0, -feet])

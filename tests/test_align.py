@@ -55,6 +55,8 @@ def test_noisy_input_aligns_to_the_true_scale_gravity_and_floor(tmp_path, spec, 
     true = compute_kinematics(truth.motion, model).body_pos
     tolerance = 0.02 * truth.cam_c2w[:, 2, 3].max() + 0.02
     assert abs(result.alignment.diagnostics["feet_height_m"]) < tolerance
+    # this view sees the floor near the person, which then sets its height
+    assert result.alignment.diagnostics["floor_distance_m"] < AlignConfig().floor_near_distance
     np.testing.assert_allclose(ours[..., 2], true[..., 2], atol=tolerance)
     np.testing.assert_allclose(np.linalg.norm(ours[-1] - ours[0], axis=-1), np.linalg.norm(true[-1] - true[0], axis=-1),
                                atol=0.02 * np.linalg.norm(true[-1] - true[0], axis=-1).max() + 0.02)
@@ -92,6 +94,21 @@ def test_floor_cut_off_by_the_view_takes_its_height_from_the_feet():
     assert diagnostics["floor_frames"] < 0.75 * diagnostics["floor_frames_searched"]
     errors = alignment_errors(result.alignment.scale, result.alignment.world_from_input, video)
     assert errors["floor_error_m"] < 0.02 and abs(errors["scale_error"]) < 0.02, errors
+
+
+def test_floor_seen_only_far_away_takes_its_height_from_the_feet():
+    """With the "rarely seen" rule off, the same upper-body view still hands the floor's height
+    to the feet: the floor it does see lies metres from the person's path."""
+    video = _video(SynthSpec("platform_step", 1, "upper_body"))
+    motion = MotionInput(video.motion_camera, "camera")
+    far = align(video.frames, motion, AlignConfig(floor_seen_fraction=0.0))
+    diagnostics = far.alignment.diagnostics
+    assert diagnostics["floor_distance_m"] > AlignConfig().floor_near_distance
+    assert diagnostics["floor_height_source"] == "feet"
+    errors = alignment_errors(far.alignment.scale, far.alignment.world_from_input, video)
+    assert errors["floor_error_m"] < 0.02, errors
+    scene = align(video.frames, motion, AlignConfig(floor_seen_fraction=0.0, floor_near_distance=np.inf))
+    assert scene.alignment.diagnostics["floor_height_source"] == "scene"
 
 
 def test_scale_survives_frames_where_the_person_depth_is_wrong():

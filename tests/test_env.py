@@ -120,3 +120,30 @@ def test_render_rgb_array(sway_clip):
     image = env.render()
     env.close()
     assert image.shape == (120, 160, 3) and image.dtype == np.uint8 and image.std() > 5
+
+
+def test_nearest_points_match_brute_force() -> None:
+    """The KD-tree query returns the ``count`` samples nearest the pelvis, nearest first, as a
+    full distance sort does; fewer samples than slots repeat the farthest."""
+    from scipy.spatial import cKDTree
+
+    from crisp_gym.envs import quat
+    from crisp_gym.envs.tracking import SimState, nearest_points
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-3, 3, (500, 3))
+    n = 4
+    body_pos = rng.normal(0, 1, (n, 24, 3))
+    body_quat = rng.normal(size=(n, 24, 4))
+    body_quat /= np.linalg.norm(body_quat, axis=-1, keepdims=True)
+    state = SimState(qpos=np.zeros((n, 76)), qvel=np.zeros((n, 75)), body_pos=body_pos, body_quat=body_quat,
+                     body_lin_vel=np.zeros((n, 24, 3)), body_ang_vel=np.zeros((n, 24, 3)),
+                     actuator_force=np.zeros((n, 69)))
+    got = nearest_points(state, cKDTree(points), 16)
+    yaw_inverse = quat.conjugate(quat.yaw_quat(body_quat[:, 0]))[:, None]
+    for i in range(n):
+        order = np.argsort(np.linalg.norm(points - body_pos[i, 0], axis=1))[:16]
+        expected = quat.rotate(np.broadcast_to(yaw_inverse[i], (16, 4)), points[order] - body_pos[i, 0])
+        np.testing.assert_allclose(got[i], expected, atol=1e-12)
+    few = nearest_points(state, cKDTree(points[:3]), 5)
+    np.testing.assert_allclose(few[:, 3:], few[:, 2:3].repeat(2, axis=1))

@@ -185,6 +185,26 @@ def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
     env.close()
 
 
+def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
+    """``estimate_values`` + value-less GAE gives TorchRL's two-pass GAE, episode ends included."""
+    from torchrl.objectives.value import GAE
+
+    from train.ppo import build_agent, estimate_values, make_env, paper_profile
+
+    env = make_env(paper_profile(clip=str(clip_dir), num_envs=4), seed=1)
+    agent = build_agent(SMALL_MLP, env.observation_spec["targets"].shape[-2], 0)
+    with torch.no_grad():
+        rollout = env.rollout(50, policy=agent.policy, break_when_any_done=False)
+        env.close()
+        assert rollout["next", "done"][:, :-1].any(), "the test needs episode ends inside the batch"
+        reference = GAE(gamma=0.99, lmbda=0.95, value_network=agent.value, average_gae=False)(rollout.clone())
+        ours = rollout.clone()
+        estimate_values(ours, agent.value)
+        GAE(gamma=0.99, lmbda=0.95, value_network=None, average_gae=False)(ours)
+    for key in ("state_value", ("next", "state_value"), "advantage", "value_target"):
+        torch.testing.assert_close(ours[key], reference[key], rtol=1e-5, atol=1e-5)
+
+
 # ----------------------------------------------------------------------------- training
 
 

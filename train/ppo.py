@@ -5,8 +5,9 @@ Pieces, all from TorchRL except the env adapter:
 * env: :class:`~train.env.CrispTrackTorchEnv` around the batched ``CrispTrack-v0``;
 * collection: ``torchrl.collectors.Collector`` (``num_envs × steps_per_env`` frames per
   iteration, trajectories continue across iterations);
-* advantages: ``torchrl.objectives.value.GAE`` (γ = 0.99, λ = 0.95), normalised per minibatch
-  by :func:`normalize_advantages`;
+* advantages: ``torchrl.objectives.value.GAE`` (γ = 0.99, λ = 0.95) on values from
+  :func:`estimate_values` (one critic pass per batch instead of GAE's two), normalised per
+  minibatch by :func:`normalize_advantages`;
 * loss: ``torchrl.objectives.ClipPPOLoss`` (no entropy bonus: σ is fixed);
 * optimiser: one Adam with two parameter groups (actor lr 2e-5 as in the paper; critic lr
   1e-4, our choice: the paper gives a single rate, and the critic's regression targets move
@@ -147,10 +148,13 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     Differences from the paper's profile and why (measured on ``flat_walk`` on 2 cores shared
     with other jobs; the runs are described in ``docs/training.md``):
 
-    * small MLPs: actor (256, 256), critic (512, 256). Both read the 2,521 observation
-      features, so their first layers are most of the update's cost; these cost about a
-      third of a (512, 512) actor with the paper's (1024, 512) critic, and the policy file
-      stays under 3 MB;
+    * small MLPs: actor (256, 256), critic (256, 256). Both read the 2,521 observation
+      features, so their first layers are most of the update's cost; the update is
+      compute-bound (~100 GFLOP/s per thread measured), and these cost about a quarter of a
+      (512, 512) actor with the paper's (1024, 512) critic. The shipped ``flat_walk`` policy
+      was trained with a (512, 256) critic; (256, 256) trains 12–15 % faster and is what a
+      from-scratch run of this profile used (``docs/training.md``). The policy file stays
+      under 3 MB;
     * 64 envs × 16 steps = 1,024 frames per iteration, 2 epochs of 512-sample minibatches.
       With σ = 0.055 over 69 dimensions, moving the mean by 0.004 rad already costs a KL of
       ~0.15, so PPO's clip rather than the learning rate bounds each iteration's step, and a
@@ -168,8 +172,10 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
       episode early starts to pay. A cap of 0.5 was too low: the policy learned to survive
       longer while spending −0.6…−0.8 per step, where the capped penalty gives no gradient.
       Logged returns and evaluations use the env's own reward;
-    * one torch thread: on a busy 2-core machine a second thread made the per-step forward
-      pass ~5× and the small-minibatch update ~2× slower;
+    * collection runs one torch thread (each step's 64-sample forward pass is too small to
+      split, and a second thread competes with MuJoCo's); the update uses torch's default
+      (all cores): on 2 idle cores that made it 1.36× faster end to end. On a machine shared
+      with other jobs one thread can be faster (``--torch-threads 1``);
     * a smaller PointNet (per-point widths 32, 64 instead of 64, 128, 256): with 128 points
       per sample the paper-sized one made the scene-aware update ~3× slower than the
       scene-blind one;
@@ -180,8 +186,7 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     """
     base = TrainConfig(num_envs=64, steps_per_env=16, minibatch_size=512, epochs=2, actor_lr=3e-5,
                        critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
-                       torch_threads=1,
-                       model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(512, 256),
+                       model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(256, 256),
                                          pointnet_hidden=(32, 64)))
     return replace(base, **overrides)
 
@@ -249,6 +254,26 @@ def normalize_advantages(advantage: torch.Tensor, eps: float = 1e-8) -> torch.Te
     if advantage.numel() < 2:
         return advantage - advantage.mean()
     return (advantage - advantage.mean()) / (advantage.std(unbiased=False) + eps)
+
+
+def estimate_values(data: TensorDictBase, value: Any) -> None:
+    """Write ``state_value`` and ``("next", "state_value")`` into a ``(num_envs, T)`` batch.
+
+    A step's next observation is the following step's observation except where an episode
+    ended (the env reset in between) and at the batch's last step, so the critic runs on all
+    observations plus only those next observations: about half the work of TorchRL's GAE,
+    which evaluates it on both in full. The values are the same.
+    """
+    value(data)
+    current = data["state_value"]
+    following = torch.empty_like(current)
+    following[:, :-1] = current[:, 1:]
+    fresh = data["next", "done"].reshape(current.shape[:2]).clone()
+    fresh[:, -1] = True
+    rows, steps = fresh.nonzero(as_tuple=True)
+    ends = value(data["next"][rows, steps].select(*value.in_keys))
+    following[rows, steps] = ends["state_value"]
+    data.set(("next", "state_value"), following)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -583,11 +608,11 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
 
     loss_module = ClipPPOLoss(agent.policy, agent.value, clip_epsilon=cfg.clip_epsilon, entropy_bonus=False,
                               loss_critic_type=cfg.critic_loss, normalize_advantage=False, functional=False)
-    gae = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=agent.value, average_gae=False)
+    gae = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=None, average_gae=False)
     optimizer = torch.optim.Adam([
         {"params": list(agent.actor.parameters()), "lr": cfg.actor_lr},
         {"params": list(agent.critic.parameters()), "lr": cfg.critic_lr},
-    ])
+    ], fused=True)
     if saved:
         agent.actor.load_state_dict(saved["actor"])
         agent.critic.load_state_dict(saved["critic"])
@@ -629,6 +654,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 losses = {}
             else:
                 with torch.no_grad():
+                    estimate_values(data, agent.value)
                     gae(data)
                 losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator)
             agent.normalizer.update(data["proprio"], data["targets"])

@@ -10,6 +10,7 @@ import os
 import gymnasium as gym
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from crisp_gym.clip import Clip
 from crisp_gym.envs import tracking
@@ -39,6 +40,7 @@ class TrackingTask:
                            else tracking.mesh_scene_samples(scene_surface(scene_xml), self.reference, config))
         if self.points is not None and len(self.points) == 0:
             raise ValueError("scene_aware=True but the scene has no surface within point_radius of the motion")
+        self.point_tree = cKDTree(self.points) if self.points is not None else None
 
     @property
     def num_frames(self) -> int:
@@ -73,7 +75,7 @@ class TrackingTask:
                 state, self.reference, tracking.future_frames(frame, cfg.num_future_frames, self.num_frames)),
         }
         if cfg.scene_aware:
-            obs["points"] = tracking.nearest_points(state, self.points, cfg.num_points)
+            obs["points"] = tracking.nearest_points(state, self.point_tree, cfg.num_points)
         return {k: v.astype(np.float32) for k, v in obs.items()}
 
     def evaluate(self, state: tracking.SimState, frame: np.ndarray):

@@ -30,6 +30,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from crisp_gym.envs import quat
 from crisp_gym.envs.config import TrackConfig
@@ -158,15 +159,17 @@ def future_frames(frame: np.ndarray, num_future: int, num_frames: int) -> np.nda
     return np.minimum(frame[:, None] + np.arange(1, num_future + 1), num_frames - 1)
 
 
-def nearest_points(state: SimState, points: np.ndarray, count: int) -> np.ndarray:
-    """(N, count, 3) the scene samples nearest the pelvis, in its heading frame."""
+def nearest_points(state: SimState, tree: cKDTree, count: int) -> np.ndarray:
+    """(N, count, 3) the scene samples nearest the pelvis, in its heading frame, nearest first.
+
+    ``tree`` is a KD-tree over the scene samples (``cKDTree(points)``): with ~10⁴ samples and
+    64 envs a brute-force distance matrix made this query a third of a training step.
+    """
     root = state.body_pos[:, 0]
-    dist = np.sum((points[None] - root[:, None]) ** 2, axis=-1)  # (N, P)
-    count_available = min(count, points.shape[0])
-    idx = np.argpartition(dist, count_available - 1, axis=1)[:, :count_available]
-    order = np.take_along_axis(dist, idx, axis=1).argsort(axis=1)
-    idx = np.take_along_axis(idx, order, axis=1)
-    chosen = points[idx] - root[:, None]
+    count_available = min(count, tree.n)
+    _, idx = tree.query(root, k=count_available)
+    idx = np.asarray(idx).reshape(len(root), count_available)
+    chosen = tree.data[idx] - root[:, None]
     if count_available < count:  # fewer samples than slots: repeat the farthest
         chosen = np.concatenate([chosen, np.repeat(chosen[:, -1:], count - count_available, axis=1)], axis=1)
     inv = _heading_inverse(state.body_quat[:, 0])
