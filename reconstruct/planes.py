@@ -145,7 +145,7 @@ class PlaneFitConfig:
     kmeans_iterations: int = 30
     cluster_merge_deg: float = 15.0
     max_normal_deviation_deg: float = 30.0
-    min_segment_cells: int = 12
+    min_segment_cells: int = 8
     association_offsets: tuple[int, ...] = (1, 4)
     association_depth_tolerance: float = 0.05
     min_overlap: float = 0.25
