@@ -114,18 +114,10 @@ def contact_completion(motion: Motion, boxes: list[Box], source: ContactSource, 
     else:
         evidence = load_external_contacts(source, motion, vertex_map, cfg.vertex_quantile)
     contacts = filter_contacts(evidence, motion, cfg.filter, geometry)
-    completion = cfg.completion
-    if completion.floor_height is not None and not _has_floor(boxes, completion.floor_height,
-                                                              completion.support_tolerance):
-        # The camera never saw the floor (the view cut it off): the feet must build it like any
-        # other unseen support, or the humanoid would fall through the aligned z = 0.
-        completion = replace(completion, floor_height=None)
-    return complete_support(contacts, boxes, completion)
-
-
-def _has_floor(boxes: list[Box], height: float, tolerance: float) -> bool:
-    """Whether a level box has its top at the floor's ``height``."""
-    return any(b.rotation[2, 2] > 0.99 and abs(b.center[2] + b.half_size[2] - height) <= tolerance for b in boxes)
+    # The clip's scene is only its boxes: the aligned z = 0 holds the humanoid only where a floor
+    # box covers it. Floor contacts that the seen floor does not cover (the view cut it off, or
+    # only a far patch of floor was seen) must build their support like any other unseen surface.
+    return complete_support(contacts, boxes, replace(cfg.completion, floor_height=None))
 
 
 def reconstruct(frames: Frames, motion: MotionInput | None = None, config: ReconstructConfig | None = None,

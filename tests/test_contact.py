@@ -412,3 +412,25 @@ def test_bad_contact_files_are_clear_errors(tmp_path):
         filter_contacts(ContactEvidence(prob=np.zeros((5, 24)), source="test"), motion)
     with pytest.raises(ValueError, match="at least 0.05 m"):
         CompletionConfig(thickness=0.01)
+
+
+def test_floor_the_camera_missed_is_built_under_the_feet():
+    """The scene is only its boxes: when the seen floor is a far patch, the pipeline's completion
+    builds floor under the walking feet (the humanoid would fall through z = 0 otherwise)."""
+    from reconstruct.contact import ContactConfig
+    from reconstruct.pipeline import contact_completion
+
+    clip = load_clip("flat_walk")
+    far_patch = Box(center=[clip.motion.root_pos[:, 0].max() + 3.0, 0.0, -0.025], half_size=[0.3, 0.3, 0.025])
+    result = contact_completion(clip.motion, [far_patch], "kinematic", ContactConfig())
+    assert result.boxes, "the feet's floor must come back"
+    for box in result.boxes:
+        assert abs(box.top_height()) < 0.03, box
+    # a floor that covers the walk needs nothing new
+    assert contact_completion(clip.motion, [floor_box()], "kinematic", ContactConfig()).boxes == []
+    # under the stance feet, the completed scene has a top at floor height
+    geo = body_geometry(clip.motion, build_humanoid())
+    feet = [BODY_NAMES.index(b) for b in PARTS["foot"]]
+    stance = np.concatenate([geo.centroid(b)[clip.motion.contacts[:, b]] for b in feet])
+    tops = support_tops(stance[:, :2], result.boxes + [far_patch])
+    assert np.mean(np.nanmin(np.abs(tops), axis=1) < 0.03) > 0.9
