@@ -380,9 +380,10 @@ def _ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, cfg: Align
 def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: float, up: np.ndarray,
                       cfg: AlignConfig) -> tuple[np.ndarray, float, list[np.ndarray]]:
     """The floor refitted frame by frame, then combined: the count-weighted mean normal, the
-    median offset, and each refitted frame's floor points. A monocular depth map's scale errs per frame, which moves that frame's floor
-    along the view (a few cm); a plane fitted to all frames at once would sit in whichever
-    frames are densest, while the median over frames sits where most frames put it."""
+    median offset, and each refitted frame's floor points. A monocular depth map's scale errs
+    per frame, which moves that frame's floor along the view (a few cm); a plane fitted to all
+    frames at once would sit in whichever frames are densest, while the median over frames sits
+    where most frames put it."""
     normals, weights, kept = [], [], []
     for pts in per_frame:
         near = pts[np.abs(pts @ normal + offset) < cfg.floor_band]
@@ -439,7 +440,8 @@ def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchor
     distance = (float(np.median(tree.query(np.concatenate(kept) @ _floor_axes(normal).T)[0])) if kept
                 else float("inf"))
     diagnostics = {
-        "floor_frames": len(kept), "floor_distance_m": distance, "floor_frames_searched": searched, "floor_points": floor["points"], "cloud_points": len(points),
+        "floor_frames": len(kept), "floor_distance_m": distance, "floor_frames_searched": searched,
+        "floor_points": floor["points"], "cloud_points": len(points),
         "up_prior_to_floor_deg": float(np.degrees(np.arccos(np.clip(normal @ up_prior, -1, 1)))),
         "planes": [{"height": round(p["height"], 4), "points": p["points"],
                     "tilt_deg": round(float(np.degrees(np.arccos(np.clip(p["normal"] @ up_prior, -1, 1)))), 2)}

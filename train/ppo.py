@@ -145,16 +145,15 @@ def paper_profile(**overrides: Any) -> TrainConfig:
 def cpu_profile(**overrides: Any) -> TrainConfig:
     """A setup for a small CPU machine (aimed at 2 cores), where the PPO update, not physics, is the cost.
 
-    Differences from the paper's profile and why (measured on ``flat_walk`` on 2 cores shared
-    with other jobs; the runs are described in ``docs/training.md``):
+    Differences from the paper's profile and why (measured on ``flat_walk`` on 2 cores; the
+    runs, and the shipped policy that one run of exactly this profile trained in 41 min, are
+    described in ``docs/training.md``):
 
     * small MLPs: actor (256, 256), critic (256, 256). Both read the 2,521 observation
       features, so their first layers are most of the update's cost; the update is
       compute-bound (~100 GFLOP/s per thread measured), and these cost about a quarter of a
-      (512, 512) actor with the paper's (1024, 512) critic. The shipped ``flat_walk`` policy
-      was trained with a (512, 256) critic; (256, 256) trains 12–15 % faster and is what a
-      from-scratch run of this profile used (``docs/training.md``). The policy file stays
-      under 3 MB;
+      (512, 512) actor with the paper's (1024, 512) critic. A (512, 256) critic learned no
+      better and trained 12–15 % slower. The policy file stays under 3 MB;
     * 64 envs × 16 steps = 1,024 frames per iteration, 2 epochs of 512-sample minibatches.
       With σ = 0.055 over 69 dimensions, moving the mean by 0.004 rad already costs a KL of
       ~0.15, so PPO's clip rather than the learning rate bounds each iteration's step, and a
@@ -612,7 +611,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     optimizer = torch.optim.Adam([
         {"params": list(agent.actor.parameters()), "lr": cfg.actor_lr},
         {"params": list(agent.critic.parameters()), "lr": cfg.critic_lr},
-    ], fused=True)
+    ], fused=True)  # one kernel for all parameters: a few % of a CPU update
     if saved:
         agent.actor.load_state_dict(saved["actor"])
         agent.critic.load_state_dict(saved["critic"])
