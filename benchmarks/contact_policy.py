@@ -131,10 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     for label, row in results.items():
         for controller in ("pd_reference", "policy"):
             s = row[controller]
+            torque = f"{s['seated_leg_torque_nm']:.0f}" if np.isfinite(s["seated_leg_torque_nm"]) else "—"
             name = "PD reference" if controller == "pd_reference" else f"policy, {row['training_frames'] / 1e6:.1f} M frames"
             print(f"| {label} | {row['primitives']} ({row['contact_primitives']}) | {name} | {s['rsi_success']:.0%} | "
                   f"{'yes' if s['frame0_success'] else 'no'}: {s['frame0_tracked']} / {s['frame0_total']} | "
-                  f"{s['w_mpjpe_mm']:.0f} | {s['mpjpe_mm']:.0f} | {s['seated_leg_torque_nm']:.0f} |")
+                  f"{s['w_mpjpe_mm']:.0f} | {s['mpjpe_mm']:.0f} | {torque} |")
     return 0
 
 
