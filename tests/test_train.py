@@ -268,7 +268,7 @@ def test_progress_csv_and_config(trained_run) -> None:
     assert [int(r["iteration"]) for r in rows] == list(range(1, 9))
     assert int(rows[-1]["frames"]) == result.frames
     assert (Path(cfg.output) / "config.json").is_file()
-    assert not list(Path(cfg.output).glob("*.tmp"))
+    assert not list(Path(cfg.output).glob("*.tmp*"))
 
 
 def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
@@ -353,7 +353,7 @@ def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
     result = train(cfg, env_fn=env_fn)
     assert result.interrupted and result.iteration == 3
     assert load_checkpoint(tmp_path)["iteration"] == 3
-    assert not list(tmp_path.glob("*.tmp"))
+    assert not list(tmp_path.glob("*.tmp*"))
 
 
 def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> None:

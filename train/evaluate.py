@@ -44,6 +44,7 @@ from scipy.spatial.transform import Rotation
 from torch import nn
 from tqdm.auto import tqdm
 
+from crisp_gym.atomic import atomic_path, write_text
 from train.models import ACTION_DIM
 
 SEGMENT_FRAMES = 100
@@ -365,7 +366,7 @@ def plot_tracking(rollout: Rollout, path: Path, title: str = "") -> None:
     ax2.set_xlabel("clip time (s)")
     ax2.set_ylabel("weighted reward term")
     ax2.legend(ncol=3, fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_torques(rollout: Rollout, path: Path, title: str = "") -> None:
@@ -390,32 +391,29 @@ def plot_torques(rollout: Rollout, path: Path, title: str = "") -> None:
     ax1.legend()
     ax2.set_ylabel("max |τ| (N·m)")
     ax2.set_xlabel("clip time (s)")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
+    """Lay out, write atomically (100 dpi) and close a matplotlib figure."""
     import matplotlib.pyplot as plt
 
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def write_video(images: list[np.ndarray], fps: float, path: Path) -> None:
-    """``images`` as an H.264 mp4 (via a temporary file)."""
+    """``images`` as an H.264 mp4 (written atomically)."""
     import imageio.v2 as imageio
 
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    imageio.mimwrite(tmp, images, fps=fps, macro_block_size=8)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        imageio.mimwrite(tmp, images, fps=fps, macro_block_size=8)
 
 
 def write_json(data: dict[str, Any], path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    write_text(path, json.dumps(data, indent=1) + "\n")
 
 
 # --------------------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from tqdm.auto import tqdm
 
+from crisp_gym.atomic import atomic_path
 from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -300,7 +301,7 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
 
 def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optimizer, iteration: int,
                     frames: int, cfg: TrainConfig, generator: torch.Generator) -> Path:
-    """Write a checkpoint atomically: to ``<path>.tmp`` first, then rename over ``path``."""
+    """Write a checkpoint atomically (a temporary file, synced, then renamed over ``path``)."""
     path = Path(path)
     state = {
         "format_version": CHECKPOINT_FORMAT,
@@ -313,12 +314,10 @@ def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optim
         "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, path)
     return path
 
 
@@ -403,9 +402,8 @@ def export_policy(run: str | Path, output: str | Path, clip: str | None = None) 
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     path = output / POLICY_NAME
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
     return path
 
 
@@ -483,12 +481,10 @@ class RunLogger:
             rows = list(csv.DictReader(f))
         if all(int(row["iteration"]) <= iteration for row in rows):
             return
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "w", newline="") as f:
+        with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=_CSV_FIELDS, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(row for row in rows if int(row["iteration"]) <= iteration)
-        os.replace(tmp, self.path)
 
     def log(self, row: dict[str, float]) -> None:
         self._csv.writerow(row)

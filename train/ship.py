@@ -15,13 +15,14 @@ writes into ``-o``:
 from __future__ import annotations
 
 import csv
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import tyro
+
+from crisp_gym.atomic import atomic_path
 
 
 @dataclass(frozen=True)
@@ -60,13 +61,11 @@ def write_progress(progress: dict[str, np.ndarray], path: Path) -> None:
     """Columns back to CSV with 6 significant digits (the training log's full precision
     doubles the file for nothing a learning curve shows); NaN becomes an empty cell."""
     keys = list(progress)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(keys)
         for row in zip(*(progress[k] for k in keys)):
             writer.writerow(["" if np.isnan(v) else str(int(v)) if v == int(v) else f"{v:.6g}" for v in row])
-    os.replace(tmp, path)
 
 
 def _moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -87,6 +86,8 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from train.evaluate import save_figure
+
     frames = progress["frames"] / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for ax, key, label in ((ax1, "success_rate", "success rate (RSI episodes)"), (ax2, "mean_return", "mean return")):
@@ -98,11 +99,7 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
     ax1.set_title(title)
     ax1.legend()
     ax2.set_xlabel("training frames (millions)")
-    fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path)
 
 
 def ship(args: ShipArgs) -> dict:
