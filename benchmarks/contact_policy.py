@@ -79,7 +79,8 @@ def _clip(args: Args, contacts: str) -> Path:
     return clip
 
 
-def _train(args: Args, clip: Path, name: str) -> Path:
+def _train(args: Args, clip: Path, name: str) -> tuple[Path, int]:
+    """The run directory and its training frames (a finished run is kept, an interrupted one resumed)."""
     run = args.out / f"run_{name}"
     cfg = cpu_profile(clip=str(clip), output=run, frames=args.frames, seed=args.seed)
     done = 0
@@ -87,8 +88,8 @@ def _train(args: Args, clip: Path, name: str) -> Path:
         done = load_checkpoint(run)["frames"]
         cfg = replace(cfg, resume=True)
     if done < args.frames:
-        train(cfg)
-    return run
+        done = train(cfg).frames
+    return run, done
 
 
 def seated_leg_torque(rollout: Rollout) -> float:
@@ -116,13 +117,13 @@ def main(argv: list[str] | None = None) -> int:
         clip = _clip(args, contacts)
         primitives = json.loads((clip / "primitives.json").read_text())
         baseline = evaluate_policy(zero_policy, clip, episodes=args.episodes, seed=args.seed, progress=False)
-        run = _train(args, clip, contacts)
+        run, frames = _train(args, clip, contacts)
         actor, cfg = load_policy(run)
         report = evaluate_policy(torch_policy(actor, cfg.scene_aware), clip, episodes=args.episodes,
                                  seed=args.seed, progress=False)
         results[label] = {"clip": str(clip), "primitives": len(primitives),
                           "contact_primitives": sum(b.get("source") == "contact" for b in primitives),
-                          "training_frames": load_checkpoint(run)["frames"],
+                          "training_frames": frames,
                           "pd_reference": _summary(*baseline), "policy": _summary(*report)}
     (args.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     print("| scene | primitives (contact) | controller | success from RSI starts | whole clip from frame 0 "

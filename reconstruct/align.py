@@ -436,9 +436,9 @@ def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchor
     searched = min(cfg.floor_frames, frames.num_frames)
     # how far from the anchors the floor was seen, along the floor: a floor seen only metres
     # away sets its height less reliably than the feet do
-    tree = cKDTree(np.asarray(anchors, dtype=float).reshape(-1, 3) @ _floor_axes(normal).T)
-    distance = (float(np.median(tree.query(np.concatenate(kept) @ _floor_axes(normal).T)[0])) if kept
-                else float("inf"))
+    along = _floor_axes(normal).T
+    tree = cKDTree(np.asarray(anchors, dtype=float).reshape(-1, 3) @ along)
+    distance = float(np.median(tree.query(np.concatenate(kept) @ along)[0])) if kept else float("inf")
     diagnostics = {
         "floor_frames": len(kept), "floor_distance_m": distance, "floor_frames_searched": searched,
         "floor_points": floor["points"], "cloud_points": len(points),
