@@ -8,6 +8,7 @@ Measured in one run on the same model:
 * a single env, and gymnasium's ``SyncVectorEnv`` over single envs, for comparison.
 
     python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip flat_walk
+    python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip bundled   # the motion library
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from crisp_gym.envs.track_vector import CrispTrackVectorEnv
 
 @dataclass(frozen=True)
 class Args:
-    clip: str = "flat_walk"
+    clip: tuple[str, ...] = ("flat_walk",)
+    """one clip, a registry tag ("bundled") or several clips (a motion library)"""
     num_envs: int = 64
     threads: int = 2
     seconds: float = 5.0
@@ -48,22 +50,21 @@ def _rate(step, seconds: float) -> float:
 
 def main(args: Args) -> dict[str, float]:
     rng = np.random.default_rng(args.seed)
-    venv = CrispTrackVectorEnv(args.num_envs, clip=args.clip, scene_aware=args.scene_aware, num_threads=args.threads)
+    venv = CrispTrackVectorEnv(args.num_envs, clip=list(args.clip), scene_aware=args.scene_aware, num_threads=args.threads)
     venv.reset(seed=args.seed)
     substeps = venv.config.substeps
 
     raw = mujoco.batch.Batch(venv.model, args.num_envs, nthread=args.threads, persistent=True)
     qpos, qvel, ctrl = raw.bind("qpos"), raw.bind("qvel"), raw.bind("ctrl")
-    frames = venv.task.sample_start_frames(rng, args.num_envs)
-    qpos[:], qvel[:] = venv.task.reset_state(frames)
-    ctrl[:] = venv.task.reference.dof_pos[frames]
+    clips, frames = venv.start_sampler.sample(rng, args.num_envs)
+    qpos[:], qvel[:], ctrl[:] = venv.task.reset_state(clips, frames)
     raw.forward()
 
     def raw_step():
         raw.step(nstep=substeps, stage=mujoco.mjtStage.mjSTAGE_VEL)
 
     def reset_raw():  # keep the raw batch near the reference, as the env keeps resetting
-        qpos[:], qvel[:] = venv.task.reset_state(frames)
+        qpos[:], qvel[:], _ = venv.task.reset_state(clips, frames)
         raw.forward()
 
     zero = np.zeros((args.num_envs, venv.model.nu))
@@ -80,7 +81,7 @@ def main(args: Args) -> dict[str, float]:
     results["batched_env_steps_per_s"] = _rate(lambda: venv.step(zero), args.seconds) * args.num_envs
     results["ratio_batched_to_raw"] = results["batched_env_steps_per_s"] / raw_rate
 
-    single = gym.make("CrispTrack-v0", clip=args.clip, scene_aware=args.scene_aware)
+    single = gym.make("CrispTrack-v0", clip=list(args.clip), scene_aware=args.scene_aware)
     single.reset(seed=args.seed)
     zero1 = np.zeros(venv.model.nu)
 
@@ -90,7 +91,7 @@ def main(args: Args) -> dict[str, float]:
             single.reset()
 
     results["single_env_steps_per_s"] = _rate(single_step, args.seconds)
-    sync = gym.vector.SyncVectorEnv([lambda: gym.make("CrispTrack-v0", clip=args.clip, scene_aware=args.scene_aware)
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make("CrispTrack-v0", clip=list(args.clip), scene_aware=args.scene_aware)
                                      for _ in range(min(args.num_envs, 16))])
     sync.reset(seed=args.seed)
     zero_sync = np.zeros((sync.num_envs, venv.model.nu))
@@ -99,7 +100,7 @@ def main(args: Args) -> dict[str, float]:
     single.close()
     venv.close()
 
-    print(f"\nCrispTrack-v0 on '{args.clip}', {args.num_envs} envs, {args.threads} threads, "
+    print(f"\nCrispTrack-v0 on {', '.join(venv.task.clip_names)}, {args.num_envs} envs, {args.threads} threads, "
           f"{substeps} substeps, scene_aware={args.scene_aware}\n")
     print("| what | env-steps/s |\n|---|---|")
     for key in ("raw_physics_env_steps_per_s", "batched_env_steps_per_s", "single_env_steps_per_s",

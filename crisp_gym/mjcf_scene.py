@@ -36,9 +36,11 @@ def load_scene_spec(scene_xml: str | Path) -> mujoco.MjSpec:
     return spec
 
 
-def attach_scene(spec: mujoco.MjSpec, scene_xml: str | Path, prefix: str = "scene/") -> None:
-    """Copy the geometry of ``scene_xml`` (geoms, meshes, heightfields) into ``spec``'s world."""
-    spec.attach(load_scene_spec(scene_xml), prefix=prefix, frame=spec.worldbody.add_frame())
+def attach_scene(spec: mujoco.MjSpec, scene_xml: str | Path, prefix: str = "scene/",
+                 offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0)) -> None:
+    """Copy the geometry of ``scene_xml`` (geoms, meshes, heightfields) into ``spec``'s world,
+    shifted by ``offset``."""
+    spec.attach(load_scene_spec(scene_xml), prefix=prefix, frame=spec.worldbody.add_frame(pos=offset))
 
 
 def _hfield_mesh(model: mujoco.MjModel, hfield: int) -> tuple[np.ndarray, np.ndarray]:

@@ -69,6 +69,34 @@ def resolve_clip(name_or_path: str | os.PathLike) -> Path:
     return clips[name]["path"]
 
 
+BUNDLED_TAG = "bundled"
+"""The tag every clip of the bundled registry carries implicitly."""
+
+
+def clips_with_tag(tag: str) -> list[str]:
+    """Names of the registered clips tagged ``tag`` (sorted); :data:`BUNDLED_TAG` names the bundled clips."""
+    if tag == BUNDLED_TAG:
+        return sorted(_read(BUNDLED_REGISTRY))
+    return sorted(name for name, entry in list_clips().items() if tag in entry["tags"])
+
+
+def resolve_clip_names(source: str | os.PathLike) -> list[str | Path]:
+    """What one clip source names: a clip directory or registered name (itself), else a tag's clips.
+
+    A clip name wins over a tag of the same spelling.
+    """
+    candidate = Path(source).expanduser()
+    if candidate.is_dir() or str(source) in list_clips():
+        return [source]
+    tagged = clips_with_tag(str(source))
+    if not tagged:
+        clips = list_clips()
+        tags = sorted({t for entry in clips.values() for t in entry["tags"]} | {BUNDLED_TAG})
+        raise ValueError(f"unknown clip {str(source)!r}: not a directory, a registered clip or a tag; "
+                         f"registered clips are {sorted(clips)}, tags are {tags}")
+    return tagged
+
+
 def load_clip(name_or_path: str | os.PathLike) -> Clip:
     """Load a clip by registered name or directory."""
     return load_clip_dir(resolve_clip(name_or_path))

@@ -84,6 +84,11 @@ class Box:
         return Box(center=m[:3, :3] @ self.center + m[:3, 3], rotation=m[:3, :3] @ self.rotation,
                    half_size=self.half_size, source=self.source, name=self.name)
 
+    def translated(self, offset: np.ndarray) -> Box:
+        """The same box shifted by ``offset`` (3,)."""
+        return Box(center=self.center + np.asarray(offset, dtype=float), rotation=self.rotation,
+                   half_size=self.half_size, source=self.source, name=self.name)
+
     def top_height(self) -> float:
         """Highest z of the box."""
         return float(self.corners()[:, 2].max())

@@ -34,7 +34,7 @@ def test_check_env(sway_clip, scene_aware):
 @pytest.mark.parametrize("clip", ["sway", *bundled_clip_names()])
 def test_reset_matches_reference_and_pd_tracking_runs_clean(sway_clip, clip):
     env = CrispTrackEnv(clip=str(sway_clip) if clip == "sway" else clip)
-    frames = np.linspace(0, env.task.num_frames - 2, 5).astype(int)
+    frames = np.linspace(0, env.task.num_frames[0] - 2, 5).astype(int)
     for frame in frames:
         _, info = env.reset(seed=1, options={"start_frame": int(frame)})
         assert info["max_body_error"] < 0.01  # the model and the motion agree
@@ -50,7 +50,7 @@ def test_reset_matches_reference_and_pd_tracking_runs_clean(sway_clip, clip):
         assert reward == pytest.approx(sum(info["reward_terms"].values()))
         if terminated or truncated:
             break
-    assert steps <= env.task.num_frames - 1
+    assert steps <= env.task.num_frames[0] - 1
     assert info["success"] == truncated and (truncated or info["max_body_error"] > 0.5)
 
 
@@ -79,7 +79,7 @@ def test_make_vec_and_same_step_autoreset(sway_clip):
     venv = gym.make_vec("CrispTrack-v0", num_envs=4, vectorization_mode="vector_entry_point", clip=str(sway_clip))
     assert isinstance(venv, CrispTrackVectorEnv)
     assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP == venv.autoreset_mode
-    num_frames = venv.task.num_frames
+    num_frames = int(venv.task.num_frames[0])
     venv.reset(seed=0, options={"start_frame": num_frames - 3})
     zero = np.zeros((4, 69))
     venv.step(zero)
@@ -111,7 +111,7 @@ def test_rsi_draws_frame_zero_about_ten_percent(sway_clip):
     starts = np.array([env.reset(seed=s)[1]["start_frame"] for s in range(400)])
     share = np.mean(starts == 0)
     assert 0.06 < share < 0.16  # 10 % plus the uniform draw's 1/(T-1)
-    assert starts.max() <= env.task.num_frames - 2 and len(np.unique(starts)) > 20
+    assert starts.max() <= env.task.num_frames[0] - 2 and len(np.unique(starts)) > 20
 
 
 def test_render_rgb_array(sway_clip):
@@ -128,7 +128,7 @@ def test_nearest_points_match_brute_force() -> None:
     from scipy.spatial import cKDTree
 
     from crisp_gym.envs import quat
-    from crisp_gym.envs.tracking import SimState, nearest_points
+    from crisp_gym.envs.tracking import nearest_points
 
     rng = np.random.default_rng(0)
     points = rng.uniform(-3, 3, (500, 3))
@@ -136,14 +136,11 @@ def test_nearest_points_match_brute_force() -> None:
     body_pos = rng.normal(0, 1, (n, 24, 3))
     body_quat = rng.normal(size=(n, 24, 4))
     body_quat /= np.linalg.norm(body_quat, axis=-1, keepdims=True)
-    state = SimState(qpos=np.zeros((n, 76)), qvel=np.zeros((n, 75)), body_pos=body_pos, body_quat=body_quat,
-                     body_lin_vel=np.zeros((n, 24, 3)), body_ang_vel=np.zeros((n, 24, 3)),
-                     actuator_force=np.zeros((n, 69)))
-    got = nearest_points(state, cKDTree(points), 16)
+    got = nearest_points(body_pos[:, 0], body_quat[:, 0], cKDTree(points), 16)
     yaw_inverse = quat.conjugate(quat.yaw_quat(body_quat[:, 0]))[:, None]
     for i in range(n):
         order = np.argsort(np.linalg.norm(points - body_pos[i, 0], axis=1))[:16]
         expected = quat.rotate(np.broadcast_to(yaw_inverse[i], (16, 4)), points[order] - body_pos[i, 0])
         np.testing.assert_allclose(got[i], expected, atol=1e-12)
-    few = nearest_points(state, cKDTree(points[:3]), 5)
+    few = nearest_points(body_pos[:, 0], body_quat[:, 0], cKDTree(points[:3]), 5)
     np.testing.assert_allclose(few[:, 3:], few[:, 2:3].repeat(2, axis=1))

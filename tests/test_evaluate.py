@@ -168,7 +168,7 @@ def test_policy_file_round_trip(untrained_run: Path, tmp_path: Path) -> None:
     path = export_policy(untrained_run, tmp_path / "shipped", clip="walk")
     from_checkpoint, cfg = load_policy(untrained_run)
     from_file, file_cfg = load_policy(path.parent)
-    assert file_cfg.clip == "walk" and file_cfg.model == cfg.model
+    assert file_cfg.clip == ("walk",) and file_cfg.model == cfg.model
     obs = _obs((6,), False, seed=1)
     torch.testing.assert_close(from_file(*obs)[0], from_checkpoint(*obs)[0], rtol=0, atol=0)
     stats = policy_training_stats(path)
@@ -223,7 +223,8 @@ def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_d
     from train.ship import ShipArgs, read_progress, ship
 
     out = tmp_path / "shipped"
-    report = ship(ShipArgs(run=untrained_run, clip=str(clip_dir), output=out, episodes=4, smooth=2))
+    report = ship(ShipArgs(run=untrained_run, clip=(str(clip_dir),), output=out, episodes=4, smooth=2))
+    assert set(report["clips"]) == {clip_dir.name} and report["clips"][clip_dir.name]["rsi"]["episodes"] == 4
     assert {p.name for p in out.iterdir()} == {"policy.pt", "progress.csv", "learning_curve.png", "eval.json"}
     assert json.loads((out / "eval.json").read_text()) == json.loads(json.dumps(report))
     original, shipped = read_progress(untrained_run / "progress.csv"), read_progress(out / "progress.csv")
@@ -231,3 +232,34 @@ def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_d
     for key in original:
         np.testing.assert_allclose(shipped[key], original[key], rtol=1e-5, equal_nan=True)
     np.testing.assert_array_equal(shipped["frames"], original["frames"])  # integers stay exact
+
+
+def test_join_videos_plays_the_clips_in_order_with_captions(tmp_path: Path) -> None:
+    import imageio.v2 as imageio
+
+    from crisp_gym.demo import join_videos
+
+    videos = {}
+    for name, shade, count in (("first", 40, 5), ("second", 200, 3)):
+        videos[name] = tmp_path / f"{name}.mp4"
+        imageio.mimwrite(videos[name], [np.full((64, 96, 3), shade, np.uint8)] * count, fps=30, macro_block_size=8)
+    join_videos(videos, tmp_path / "all.mp4")
+    frames = np.stack(imageio.mimread(tmp_path / "all.mp4"))
+    assert len(frames) == 8
+    lower = frames[:, 48:].mean(axis=(1, 2, 3))  # below the caption: the clip's own shade
+    assert np.all(np.abs(lower[:5] - 40) < 8) and np.all(np.abs(lower[5:] - 200) < 8)
+    assert frames[0, 10:45, 10:90].max() > 150  # white caption text on the dark first clip
+
+
+def test_shipped_policy_of_a_clip_is_its_own_or_a_library_policy_listing_it(tmp_path: Path, monkeypatch) -> None:
+    from crisp_gym import demo
+
+    for name, clips in (("flat_walk", None), ("library", ["stairs_up", "chair_sit"])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "policy.pt").write_bytes(b"")
+        if clips:
+            (tmp_path / name / "eval.json").write_text(json.dumps({"clips": {c: {} for c in clips}}))
+    monkeypatch.setattr(demo, "SHIPPED_POLICIES", tmp_path)
+    assert demo.shipped_policy("flat_walk") == tmp_path / "flat_walk" / "policy.pt"
+    assert demo.shipped_policy("chair_sit") == tmp_path / "library" / "policy.pt"
+    assert demo.shipped_policy("stairs_down") is None

@@ -382,3 +382,70 @@ def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: 
     train(replace(cfg, frames=512, actor_lr=3e-5, critic_lr=2e-4, resume=True))
     groups = load_checkpoint(tmp_path)["optimizer"]["param_groups"]
     assert [g["lr"] for g in groups] == [3e-5, 2e-4]
+
+
+def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, tmp_path: Path) -> None:
+    """``init_from`` a policy file: the new run starts from its actor (normaliser included, so no
+    iteration only gathers statistics); during the critic warm-up only the critic moves; after
+    it the actor trains; a different architecture is refused."""
+    from train.ppo import export_policy, load_checkpoint, train
+
+    source = tmp_path / "source"
+    train(_tiny_config(clip_dir, source, num_envs=4, frames=512))
+    policy = export_policy(source, tmp_path / "shipped")
+    original = load_checkpoint(source)["actor"]
+    weights = [k for k in original if "normalizer" not in k]
+
+    warm = _tiny_config(clip_dir, tmp_path / "warm", num_envs=4, frames=3 * 128, init_from=policy, critic_warmup=3)
+    result = train(warm)
+    assert len(result.history) == 3 and all("loss_critic" in row for row in result.history)
+    held = load_checkpoint(warm.output)["actor"]
+    for key in weights:
+        torch.testing.assert_close(held[key], original[key], rtol=0, atol=0, msg=key)
+
+    trained = train(replace(warm, output=tmp_path / "warm2", critic_warmup=1))
+    moved = load_checkpoint(trained.checkpoint)["actor"]
+    assert any(not torch.equal(moved[k], original[k]) for k in weights)
+    with pytest.raises(ValueError, match="cannot initialise from"):
+        train(replace(warm, output=tmp_path / "other", model=TINY_TRANSFORMER))
+
+    # a milestone keeps the critic: the next run starts with both networks and no warm-up
+    milestone = export_policy(source, tmp_path / "milestone", with_critic=True)
+    assert "critic" not in torch.load(policy, weights_only=True)
+    resumed = train(replace(warm, output=tmp_path / "from_milestone", init_from=milestone, frames=128))
+    assert resumed.history[0]["kl_approx"] != 0.0  # the actor trained in the first iteration
+
+
+def test_periodic_evaluation_is_logged_and_plotted(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import train
+
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, eval_every=2, eval_episodes=4)
+    result = train(cfg)
+    with open(tmp_path / "progress.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    evaluated = [r for r in rows if r["eval_success_min"]]
+    assert [int(r["iteration"]) for r in evaluated] == [2, 4] and result.iteration == 4
+    for r in evaluated:
+        assert float(r[f"eval_success/{clip_dir.name}"]) in (0, 0.25, 0.5, 0.75, 1.0)
+        assert 0 < int(r[f"eval_frames/{clip_dir.name}"]) <= 89
+    assert (tmp_path / "evaluation.png").is_file()
+
+
+def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Path, tmp_path: Path,
+                                                                    monkeypatch) -> None:
+    """The stop rule reads the evaluation: every clip at the success threshold *and* tracked from
+    frame 0 to its end (evaluations replaced by a script, so the rule is tested, not learning)."""
+    from train import evaluate
+    from train.ppo import train
+
+    script = iter([{"success": 0.95, "frames": 40, "whole_clip": False},  # frame 0 fails: go on
+                   {"success": 0.85, "frames": 89, "whole_clip": True},   # below the threshold: go on
+                   {"success": 0.90, "frames": 89, "whole_clip": True}])  # met
+
+    def scripted(self, policy):
+        return {name: next(script) for name in self.names}
+    monkeypatch.setattr(evaluate.LibraryEvaluation, "__call__", scripted)
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=100 * 128, eval_every=1, eval_episodes=2,
+                       until_success=0.9)
+    result = train(cfg)
+    assert result.reached_success and result.iteration == 3

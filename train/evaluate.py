@@ -158,6 +158,7 @@ class EvalResult:
         success: (S,) the episode reached the clip's last frame.
         start_frames: (S,) the episodes' start frames.
         seconds: wall time of the batched rollout (policy and simulation).
+        clips: (S,) the episodes' clip indices (into the env's ``task.clip_names``).
     """
 
     returns: np.ndarray
@@ -165,6 +166,7 @@ class EvalResult:
     success: np.ndarray
     start_frames: np.ndarray
     seconds: float
+    clips: np.ndarray
 
     @property
     def mean_return(self) -> float:
@@ -178,6 +180,28 @@ class EvalResult:
     def fps(self) -> float:
         """Env-steps per second of the episodes (steps after an episode's end are not counted)."""
         return float(self.lengths.sum() / self.seconds)
+
+
+def run_episodes(policy: Policy, env: Any, *, seed: int = 0, options: dict | None = None) -> EvalResult:
+    """One episode per simulation of a batched ``CrispTrack-v0`` (``env``), from the starts that
+    ``env.reset(seed=seed, options=options)`` gives; steps until every episode has ended.
+
+    The env's autoreset starts new episodes in finished simulations; they are not counted.
+    """
+    start = time.perf_counter()
+    obs, info = env.reset(seed=seed, options=options)
+    count = env.num_envs
+    returns = np.zeros(count)
+    lengths = np.zeros(count, dtype=int)
+    success = np.zeros(count, dtype=bool)
+    running = np.ones(count, dtype=bool)
+    while running.any():
+        obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        returns += np.where(running, reward, 0.0)
+        lengths += running
+        success |= running & truncated
+        running &= ~(terminated | truncated)
+    return EvalResult(returns, lengths, success, info["start_frame"], time.perf_counter() - start, info["clip"])
 
 
 @torch.no_grad()
@@ -213,22 +237,55 @@ def evaluate(actor: nn.Module | Policy, clip: str | os.PathLike, start_frames: i
     env = gym.make_vec("CrispTrack-v0", num_envs=count, vectorization_mode="vector_entry_point", clip=clip,
                        scene_aware=scene_aware, **env_kwargs)
     try:
-        start = time.perf_counter()
-        obs, info = env.reset(seed=seed, options=options)
-        returns = np.zeros(count)
-        lengths = np.zeros(count, dtype=int)
-        success = np.zeros(count, dtype=bool)
-        running = np.ones(count, dtype=bool)
-        while running.any():
-            obs, reward, terminated, truncated, _ = env.step(policy(obs))
-            returns += np.where(running, reward, 0.0)
-            lengths += running
-            success |= running & truncated
-            running &= ~(terminated | truncated)
-        seconds = time.perf_counter() - start
+        return run_episodes(policy, env, seed=seed, options=options)
     finally:
         env.close()
-    return EvalResult(returns, lengths, success, info["start_frame"], seconds)
+
+
+class LibraryEvaluation:
+    """The same deterministic test of every clip of a library, repeated during training.
+
+    Per clip: ``episodes`` RSI starts drawn once (uniform reference state init, seeded) plus
+    one episode from frame 0, all in one batched env. Calling it with a policy returns, per
+    clip name, ``success`` (share of the RSI episodes that reached the clip's end) and
+    ``frames`` (frames tracked from frame 0; the whole clip is ``num_frames - 1``).
+    """
+
+    def __init__(self, clip: Any, episodes: int, *, scene_aware: bool = False, seed: int = 0,
+                 num_threads: int = 0):
+        from crisp_gym.envs.config import TrackConfig
+        from crisp_gym.envs.start_sampler import StartSampler
+        from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+
+        probe = CrispTrackVectorEnv(1, clip=clip)
+        self.names = probe.task.clip_names
+        self.num_frames = probe.task.num_frames.copy()
+        probe.close()
+        per_clip = episodes + 1
+        self.clips = np.repeat(np.arange(len(self.names)), per_clip)
+        sampler = StartSampler(self.num_frames, TrackConfig())
+        _, drawn = sampler.sample(np.random.default_rng(seed), len(self.clips), clips=self.clips)
+        drawn[::per_clip] = 0  # each clip's first episode: the whole clip from frame 0
+        self.frames = drawn
+        self.first_frame = np.zeros(len(self.clips), dtype=bool)
+        self.first_frame[::per_clip] = True
+        self.env = CrispTrackVectorEnv(len(self.clips), clip=clip, scene_aware=scene_aware, num_threads=num_threads)
+        self.scene_aware = scene_aware
+
+    @torch.no_grad()
+    def __call__(self, policy: Policy) -> dict[str, dict[str, float]]:
+        result = run_episodes(policy, self.env, options={"clip": self.clips, "start_frame": self.frames})
+        out = {}
+        for c, name in enumerate(self.names):
+            rsi = (self.clips == c) & ~self.first_frame
+            whole = (self.clips == c) & self.first_frame
+            out[name] = {"success": float(result.success[rsi].mean()),
+                         "frames": int(result.lengths[whole][0]),
+                         "whole_clip": bool(result.success[whole][0])}
+        return out
+
+    def close(self) -> None:
+        self.env.close()
 
 
 @dataclass
@@ -312,7 +369,8 @@ def record_rollout(policy: Policy, clip: str | os.PathLike, start_frame: int = 0
         body_pos, ref_pos = [env.data.xpos[body_ids].copy()], [reference.body_pos[start_frame]]
         errors, rewards, terms, torques, images = [info["max_body_error"]], [], [], [], []
         frame, success = start_frame, False
-        steps = env.task.num_frames - 1 - start_frame
+        num_frames = int(env.task.num_frames[0])  # a one-clip library: its frames are the reference's rows
+        steps = num_frames - 1 - start_frame
         for _ in tqdm(range(steps), desc="rollout", unit="step", disable=not progress, leave=False):
             if renderer is not None:
                 images.append(renderer.render(env.data, reference.qpos[frame]))
@@ -334,7 +392,7 @@ def record_rollout(policy: Policy, clip: str | os.PathLike, start_frame: int = 0
             body_pos=np.asarray(body_pos), ref_body_pos=np.asarray(ref_pos), max_body_error=np.asarray(errors),
             rewards=np.asarray(rewards), torques=np.asarray(torques).reshape(-1, env.model.nu),
             reward_terms={k: np.array([t[k] for t in terms]) for k in (terms[0] if terms else {})},
-            success=success, start_frame=start_frame, num_frames=env.task.num_frames,
+            success=success, start_frame=start_frame, num_frames=num_frames,
             control_hz=env.config.control_hz, termination_distance=env.config.termination_distance,
             images=images)
     finally:
@@ -366,6 +424,38 @@ def plot_tracking(rollout: Rollout, path: Path, title: str = "") -> None:
     ax2.set_xlabel("clip time (s)")
     ax2.set_ylabel("weighted reward term")
     ax2.legend(ncol=3, fontsize=8)
+    save_figure(fig, path)
+
+
+def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]) -> None:
+    """The periodic evaluations of a run (``progress.csv``): per clip (name → frames), success
+    from RSI starts and the share of the clip tracked from frame 0, against training frames."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(progress_csv, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("eval_success_min")]
+    if not rows:
+        return
+    frames = np.array([float(r["frames"]) for r in rows]) / 1e6
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for name, num_frames in clip_frames.items():
+        ax1.plot(frames, [float(r[f"eval_success/{name}"]) for r in rows], marker=".", label=name)
+        tracked = np.array([float(r[f"eval_frames/{name}"]) for r in rows])
+        ax2.plot(frames, tracked / (num_frames - 1), marker=".", label=name)
+    ax1.set_ylabel("success from RSI starts")
+    ax1.set_ylim(0, 1.02)
+    ax1.set_title("deterministic evaluation (mean action)")
+    ax1.legend(fontsize=8, ncol=2)
+    ax1.grid(alpha=0.3)
+    ax2.set_ylabel("share of the clip tracked from frame 0")
+    ax2.set_ylim(0, 1.02)
+    ax2.set_xlabel("training frames (millions)")
+    ax2.grid(alpha=0.3)
     save_figure(fig, path)
 
 
@@ -426,7 +516,8 @@ class EvalArgs:
 
     Attributes:
         policy: run directory, ``checkpoint.pt``, or policy file / directory (``policy.pt``).
-        clip: clip name or directory (default: the one the policy was trained on).
+        clip: clip name or directory (default: every clip the policy was trained on, each in
+            its own subdirectory of ``output``).
         output: directory for report.json, tracking.png, torques.png and rollout.mp4.
         episodes: episodes from RSI start frames (drawn as in training).
         video: render rollout.mp4 of the frame-0 episode (needs headless OpenGL: EGL or OSMesa).
@@ -474,32 +565,53 @@ def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title:
     return written
 
 
+def policy_clips(clips: Any) -> list[str]:
+    """The clip names a policy was trained on (its config's ``clip``, tags expanded)."""
+    from crisp_gym.registry import resolve_clip_names
+
+    sources = [clips] if isinstance(clips, (str, os.PathLike)) else list(clips)
+    return [str(name) for source in sources for name in resolve_clip_names(source)]
+
+
 def run_eval(args: EvalArgs) -> dict[str, Any]:
-    """Evaluate ``args.policy`` and write the outputs; returns the report."""
+    """Evaluate ``args.policy`` and write the outputs; returns the report.
+
+    Without ``--clip`` every clip the policy was trained on is evaluated; with several, each
+    gets its own subdirectory of ``--output`` and ``report.json`` there sums them up.
+    """
     from train.ppo import load_policy, policy_training_stats
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
     actor, cfg = load_policy(args.policy, args.device)
-    clip = args.clip or cfg.clip
+    clips = [args.clip] if args.clip else policy_clips(cfg.clip)
     policy = torch_policy(actor, cfg.scene_aware, args.device)
-    metrics, rollout = evaluate_policy(policy, clip, episodes=args.episodes, seed=args.seed,
-                                       scene_aware=cfg.scene_aware, render=args.video)
-    report = {"policy": str(args.policy), "clip": str(clip), "scene_aware": cfg.scene_aware,
-              "actor": cfg.model.actor, "training": policy_training_stats(args.policy), **metrics}
-    write_outputs(rollout, report, args.output, f"{Path(str(clip)).name}: {Path(args.policy).name}")
-    return report
+    reports = {}
+    for clip in clips:
+        metrics, rollout = evaluate_policy(policy, clip, episodes=args.episodes, seed=args.seed,
+                                           scene_aware=cfg.scene_aware, render=args.video)
+        name = Path(str(clip)).name
+        reports[name] = {"policy": str(args.policy), "clip": str(clip), "scene_aware": cfg.scene_aware,
+                         "actor": cfg.model.actor, "training": policy_training_stats(args.policy), **metrics}
+        write_outputs(rollout, reports[name], args.output / name if len(clips) > 1 else args.output,
+                      f"{name}: {Path(args.policy).name}")
+    if len(clips) == 1:
+        return reports[Path(str(clips[0])).name]
+    summary = {"policy": str(args.policy), "clips": reports}
+    write_json(summary, args.output / "report.json")
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
     """``crisp eval``: see :class:`EvalArgs`."""
     args = tyro.cli(EvalArgs, args=argv, prog="crisp eval")
     report = run_eval(args)
-    rsi, full = report["rsi"], report["from_frame_0"]
-    print(f"success from RSI starts: {rsi['success_rate']:.1%} of {rsi['episodes']}; from frame 0: "
-          f"{'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} frames); "
-          f"W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
-    print(f"wrote {args.output}/report.json, tracking.png, torques.png" + (", rollout.mp4" if args.video else ""))
+    for name, row in report.get("clips", {Path(report.get("clip", "")).name: report}).items():
+        rsi, full = row["rsi"], row["from_frame_0"]
+        print(f"{name}: success from RSI starts {rsi['success_rate']:.1%} of {rsi['episodes']}; from frame 0: "
+              f"{'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} frames); "
+              f"W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
+    print(f"wrote {args.output}/report.json" + (" and one folder per clip" if "clips" in report else ""))
     return 0
 
 

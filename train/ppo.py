@@ -43,7 +43,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from tqdm.auto import tqdm
 
-from crisp_gym.atomic import atomic_path
+from crisp_gym.atomic import atomic_path, write_text
 from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -60,7 +60,11 @@ class TrainConfig:
     """Everything a training run needs; defaults are the paper's values where it gives them.
 
     Attributes:
-        clip: clip name (registry) or clip directory.
+        clip: clips to train on: names (registry), registry tags (``bundled``: every bundled
+            clip) or clip directories; several make a motion library.
+        clip_weights: relative probability of each clip at a reset (``None``: equal).
+        start_sampling: ``"uniform"`` reference state init or ``"adaptive"`` (starts drawn
+            where episodes recently failed; :mod:`crisp_gym.envs.start_sampler`).
         output: run directory (config, checkpoint, CSV log).
         scene_aware: train the scene-aware policy (``points`` observation, PointNet tokens).
         frames: total environment steps (the paper does not state its budget).
@@ -89,11 +93,24 @@ class TrainConfig:
         num_threads: MuJoCo threads stepping the batch (0: all CPUs).
         torch_threads: torch intra-op threads (0: torch's default).
         checkpoint_every: iterations between checkpoints (one is also written at the end).
+        eval_every: iterations between deterministic evaluations (the policy's mean action, per
+            clip: success from ``eval_episodes`` fixed RSI starts and frames tracked from frame
+            0), logged in ``progress.csv`` and ``evaluation.png``; 0 disables them.
+        eval_episodes: RSI episodes per clip in each evaluation (plus one from frame 0).
+        until_success: stop once an evaluation finds every clip at this RSI success or more,
+            and tracked from frame 0 to the end (``None``: train for ``frames``).
+        init_from: warm start: a policy file, run directory or checkpoint whose actor (and,
+            from a checkpoint, critic) weights and observation statistics start this run. Its
+            architecture must match this run's.
+        critic_warmup: with ``init_from`` and no critic in it, iterations that train only the
+            critic, so a random critic's advantages do not undo the loaded actor.
         resume: continue from ``output/checkpoint.pt``.
         progress: show a progress bar.
     """
 
-    clip: str = "flat_walk"
+    clip: tuple[str, ...] = ("flat_walk",)
+    clip_weights: tuple[float, ...] | None = None
+    start_sampling: str = "uniform"
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/track")
     scene_aware: bool = False
     frames: int = 1_000_000_000
@@ -118,11 +135,20 @@ class TrainConfig:
     num_threads: int = 0
     torch_threads: int = 0
     checkpoint_every: int = 20
+    eval_every: int = 0
+    eval_episodes: int = 32
+    until_success: float | None = None
+    init_from: Path | None = None
+    critic_warmup: int = 20
     resume: bool = False
     progress: bool = True
 
     def __post_init__(self) -> None:
-        positive = ("num_envs", "steps_per_env", "minibatch_size", "epochs", "checkpoint_every")
+        if isinstance(self.clip, (str, os.PathLike)):  # one clip, as configs before motion libraries held it
+            object.__setattr__(self, "clip", (str(self.clip),))
+        if not self.clip:
+            raise ValueError("clip must name at least one clip")
+        positive = ("num_envs", "steps_per_env", "minibatch_size", "epochs", "checkpoint_every", "eval_episodes")
         bad = [name for name in positive if getattr(self, name) < 1]
         if bad:
             raise ValueError(f"{', '.join(bad)} must be at least 1")
@@ -132,6 +158,14 @@ class TrainConfig:
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
         if self.critic_loss not in ("l2", "smooth_l1"):
             raise ValueError(f"critic_loss must be 'l2' or 'smooth_l1', got {self.critic_loss!r}")
+        if self.eval_every < 0 or self.critic_warmup < 0:
+            raise ValueError("eval_every and critic_warmup must be non-negative")
+        if self.until_success is not None and not (0 < self.until_success <= 1 and self.eval_every > 0):
+            raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
+        rates = {name: getattr(self, name) for name in ("actor_lr", "critic_lr", "clip_epsilon", "max_grad_norm")}
+        bad_rates = [f"{name}={value!r}" for name, value in rates.items() if not (math.isfinite(value) and value > 0)]
+        if bad_rates:
+            raise ValueError(f"{', '.join(bad_rates)}: must be positive and finite")
 
     @property
     def frames_per_iteration(self) -> int:
@@ -179,13 +213,19 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     * a smaller PointNet (per-point widths 32, 64 instead of 64, 128, 256): with 128 points
       per sample the paper-sized one made the scene-aware update ~3× slower than the
       scene-blind one;
-    * a 20 M frame budget.
+    * a 20 M frame budget;
+    * adaptive start sampling (starts drawn where episodes recently failed, 20 % uniform):
+      a clip's hard part (standing up from a seat, a stair landing) is a small share of its
+      frames, and uniform starts spend most of the budget on what the policy already tracks;
+    * a deterministic evaluation of every clip every 500 iterations (~0.5 M frames; 32 RSI
+      starts and frame 0 per clip), which ``--until-success`` reads.
 
     Residual actions (the env's default) are kept: an untrained policy already tracks the
     reference pose with its PD targets, which matters most when few frames are affordable.
     """
     base = TrainConfig(num_envs=64, steps_per_env=16, minibatch_size=512, epochs=2, actor_lr=3e-5,
                        critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
+                       start_sampling="adaptive", eval_every=500, eval_episodes=32,
                        model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(256, 256),
                                          pointnet_hidden=(32, 64)))
     return replace(base, **overrides)
@@ -245,7 +285,8 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
     from train.env import CrispTrackTorchEnv, TrainingReward
 
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
-                           clip=cfg.clip, scene_aware=cfg.scene_aware, num_threads=cfg.num_threads)
+                           clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
+                           clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling)
     return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 
@@ -289,6 +330,8 @@ def resolve_device(name: str) -> torch.device:
 def _config_dict(cfg: TrainConfig) -> dict[str, Any]:
     data = asdict(cfg)
     data["output"] = str(cfg.output)
+    data["clip"] = list(cfg.clip)
+    data["init_from"] = None if cfg.init_from is None else str(cfg.init_from)
     return data
 
 
@@ -296,6 +339,11 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
     """Inverse of the ``config`` entry of a checkpoint (unknown keys are an error)."""
     data = dict(data)
     model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.pop("model").items()})
+    for key in ("clip", "clip_weights"):  # JSON keeps tuples as lists
+        if isinstance(data.get(key), list):
+            data[key] = tuple(data[key])
+    if data.get("init_from") is not None:
+        data["init_from"] = Path(data["init_from"])
     return TrainConfig(**{**data, "output": Path(data["output"]), "model": model})
 
 
@@ -373,7 +421,8 @@ def _read_policy_source(path: str | Path) -> tuple[Path, dict[str, Any]]:
     return path, state
 
 
-def export_policy(run: str | Path, output: str | Path, clip: str | None = None) -> Path:
+def export_policy(run: str | Path, output: str | Path, clip: str | tuple[str, ...] | None = None,
+                  with_critic: bool = False) -> Path:
     """Write a run's actor as a small self-contained policy file, ``output/policy.pt``.
 
     It holds the actor's ``state_dict`` (observation-normaliser statistics included), the
@@ -384,14 +433,16 @@ def export_policy(run: str | Path, output: str | Path, clip: str | None = None) 
     Args:
         run: run directory or checkpoint file.
         output: directory for ``policy.pt`` (created).
-        clip: clip name to record in the config instead of the run's (e.g. a registered name
-            in place of a machine-specific directory).
+        clip: clip name(s) to record in the config instead of the run's (e.g. registered names
+            in place of machine-specific directories).
+        with_critic: keep the critic too (a training milestone: ``crisp train --init-from``
+            then continues with both networks warm; the optimiser state is never kept).
     """
     checkpoint = Path(run) / CHECKPOINT_NAME if Path(run).is_dir() else Path(run)
     state = load_checkpoint(checkpoint)
     config = dict(state["config"])
     if clip is not None:
-        config["clip"] = clip
+        config["clip"] = [clip] if isinstance(clip, str) else list(clip)
     payload = {
         "format_version": POLICY_FORMAT,
         "kind": "policy",
@@ -399,6 +450,8 @@ def export_policy(run: str | Path, output: str | Path, clip: str | None = None) 
         "actor": state["actor"],
         "training": policy_training_stats(checkpoint),
     }
+    if with_critic:
+        payload["critic"] = state["critic"]
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     path = output / POLICY_NAME
@@ -443,10 +496,10 @@ def _obs_sizes(critic_state: dict[str, torch.Tensor]) -> tuple[int, int]:
 _ARCHITECTURE_FIELDS = ("scene_aware", "model", "normalize_obs")
 
 
-def _check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
+def _check_resumable(saved: TrainConfig, cfg: TrainConfig, action: str = "resume") -> None:
     changed = [name for name in _ARCHITECTURE_FIELDS if getattr(saved, name) != getattr(cfg, name)]
     if changed:
-        raise ValueError(f"cannot resume: {', '.join(changed)} differ from the checkpoint's "
+        raise ValueError(f"cannot {action}: {', '.join(changed)} differ from the saved run's "
                          f"({', '.join(f'{n}={getattr(saved, n)!r}' for n in changed)})")
 
 
@@ -457,13 +510,14 @@ def _check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
 class RunLogger:
     """CSV rows (+ TensorBoard scalars when the ``tensorboard`` package is importable)."""
 
-    def __init__(self, directory: Path, append: bool, iteration: int = 0):
+    def __init__(self, directory: Path, append: bool, iteration: int = 0, extra_fields: tuple[str, ...] = ()):
         self.path = directory / "progress.csv"
+        self.fields = _CSV_FIELDS + tuple(extra_fields)
         new = not (append and self.path.exists())
         if not new:
             self._truncate(iteration)
         self._file = open(self.path, "w" if new else "a", newline="")
-        self._csv = csv.DictWriter(self._file, fieldnames=_CSV_FIELDS, extrasaction="ignore")
+        self._csv = csv.DictWriter(self._file, fieldnames=self.fields, extrasaction="ignore")
         if new:
             self._csv.writeheader()
         self._tb = None
@@ -478,11 +532,15 @@ class RunLogger:
         """Drop rows after ``iteration``: a run that died between checkpoints logged
         iterations that resuming repeats."""
         with open(self.path, newline="") as f:
-            rows = list(csv.DictReader(f))
+            reader = csv.DictReader(f)
+            rows, header = list(reader), tuple(reader.fieldnames or ())
+        if header != self.fields:
+            raise ValueError(f"{self.path} has the columns {list(header)}, but this run logs {list(self.fields)}: "
+                             f"resume with the clips the run started with")
         if all(int(row["iteration"]) <= iteration for row in rows):
             return
         with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=_CSV_FIELDS, extrasaction="ignore")
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(row for row in rows if int(row["iteration"]) <= iteration)
 
@@ -500,6 +558,25 @@ class RunLogger:
             self._tb.close()
 
 
+def _clip_fields(clip_names: list[str], cfg: TrainConfig) -> tuple[str, ...]:
+    """The per-clip columns of ``progress.csv``: the adaptive sampler's failure mass and, with
+    periodic evaluation, the evaluation's success and frames from frame 0."""
+    fields = [f"start_failures/{name}" for name in clip_names]
+    if cfg.eval_every:
+        fields += [f"eval_{kind}/{name}" for name in clip_names for kind in ("success", "frames")]
+        fields += ["eval_success_min"]
+    return tuple(fields)
+
+
+def _evaluation_row(results: dict[str, dict[str, float]]) -> dict[str, float]:
+    row = {}
+    for name, r in results.items():
+        row[f"eval_success/{name}"] = r["success"]
+        row[f"eval_frames/{name}"] = r["frames"]
+    row["eval_success_min"] = min(r["success"] for r in results.values())
+    return row
+
+
 # --------------------------------------------------------------------------------------------
 # Training
 
@@ -514,6 +591,7 @@ class TrainResult:
         history: one dict per iteration of this call (the CSV rows).
         checkpoint: path of the last checkpoint.
         interrupted: training stopped early on Ctrl-C (the checkpoint holds the state then).
+        reached_success: training stopped because an evaluation met ``until_success``.
     """
 
     iteration: int
@@ -521,11 +599,15 @@ class TrainResult:
     history: list[dict[str, float]]
     checkpoint: Path
     interrupted: bool = False
+    reached_success: bool = False
 
 
 def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.optim.Optimizer, agent: Agent,
-               cfg: TrainConfig, generator: torch.Generator) -> dict[str, float]:
-    """``cfg.epochs`` passes of shuffled minibatches over a flat batch with advantages; mean losses."""
+               cfg: TrainConfig, generator: torch.Generator, train_actor: bool = True) -> dict[str, float]:
+    """``cfg.epochs`` passes of shuffled minibatches over a flat batch with advantages; mean losses.
+
+    ``train_actor=False`` steps only the critic (the warm-up of a warm-started run).
+    """
     n = data.numel()
     sums: dict[str, float] = {}
     steps = 0
@@ -536,7 +618,7 @@ def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.op
             if cfg.normalize_advantage:
                 batch.set("advantage", normalize_advantages(batch.get("advantage")))
             losses = loss_module(batch)
-            loss = losses["loss_objective"] + losses["loss_critic"]
+            loss = losses["loss_objective"] + losses["loss_critic"] if train_actor else losses["loss_critic"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(agent.actor.parameters(), cfg.max_grad_norm)
@@ -584,8 +666,12 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists: pass resume=True (--resume) to continue that run, "
                               f"or choose another output directory")
+    warm = None
+    if cfg.init_from is not None and saved is None:
+        warm_path, warm = _read_policy_source(cfg.init_from)
+        _check_resumable(config_from_dict(warm["config"]), cfg, f"initialise from {warm_path}")
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(_config_dict(cfg), indent=2) + "\n")
+    write_text(out / "config.json", json.dumps(_config_dict(cfg), indent=2) + "\n")
 
     device = resolve_device(cfg.device)
     if cfg.torch_threads > 0:
@@ -617,17 +703,30 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             group["lr"] = lr
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])
+    elif warm is not None:
+        agent.actor.load_state_dict(warm["actor"])  # the observation statistics come with it
+        if "critic" in warm:
+            agent.critic.load_state_dict(warm["critic"])
+    # a loaded actor with a fresh critic: let the critic learn its values before the actor moves
+    critic_only_until = cfg.critic_warmup if warm is not None and "critic" not in warm else 0
 
     collector = Collector(env, agent.policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1,
                           env_device="cpu", policy_device=device, storing_device=device,
                           auto_register_policy_transforms=False)
-    logger = RunLogger(out, append=cfg.resume, iteration=iteration)
+    clip_names = env.vec_env.task.clip_names
+    evaluation = None
+    if cfg.eval_every:
+        from train.evaluate import LibraryEvaluation, torch_policy
+
+        evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
+                                       num_threads=cfg.num_threads)
+    logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=_clip_fields(clip_names, cfg))
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}
     bar = tqdm(total=cfg.frames, initial=min(frames, cfg.frames), unit="frame", unit_scale=True,
                disable=not cfg.progress, dynamic_ncols=True)
     start_time = time.perf_counter()
-    interrupted = False
+    interrupted = stopped_early = False
     try:
         batches = iter(collector)
         while frames < cfg.frames:
@@ -643,15 +742,17 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             env_s = env.env_time - env_before
 
             update_start = time.perf_counter()
-            if iteration == 0 and cfg.normalize_obs:
+            if iteration == 0 and cfg.normalize_obs and warm is None:
                 # The first batch only initialises the observation statistics: updating the
-                # actor on raw (unnormalised) inputs would take oversized first steps.
+                # actor on raw (unnormalised) inputs would take oversized first steps. A warm
+                # start brings its statistics.
                 losses = {}
             else:
                 with torch.no_grad():
                     estimate_values(data, agent.value)
                     gae(data)
-                losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator)
+                losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator,
+                                    train_actor=iteration >= critic_only_until)
             agent.normalizer.update(data["proprio"], data["targets"])
             collector.update_policy_weights_()
             update_s = time.perf_counter() - update_start
@@ -664,14 +765,32 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             row = {"iteration": iteration, "frames": frames, "time_s": time.perf_counter() - start_time,
                    "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
                    "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
+            sampler = env.vec_env.start_sampler
+            row.update({f"start_failures/{name}": float(mass)
+                        for name, mass in zip(clip_names, sampler.stats()["failure_mass"])})
+            reached = False
+            if evaluation is not None and iteration % cfg.eval_every == 0:
+                results = evaluation(torch_policy(agent.actor, cfg.scene_aware, device))
+                row.update(_evaluation_row(results))
+                reached = cfg.until_success is not None and all(
+                    r["success"] >= cfg.until_success and r["whole_clip"] for r in results.values())
             history.append(row)
             logger.log(row)
+            if evaluation is not None and iteration % cfg.eval_every == 0:
+                from train.evaluate import plot_evaluations
+
+                plot_evaluations(logger.path, out / "evaluation.png", dict(zip(evaluation.names, evaluation.num_frames)))
             bar.update(data.numel())
             bar.set_postfix(fps=f"{row['fps']:.0f}", ret=f"{last_episodes.get('mean_return', math.nan):.1f}",
                             len=f"{last_episodes.get('mean_length', math.nan):.0f}",
                             succ=f"{last_episodes.get('success_rate', math.nan):.2f}", refresh=False)
             if iteration % cfg.checkpoint_every == 0:
                 save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator)
+            if reached:
+                bar.write(f"every clip reached {cfg.until_success:.0%} success from RSI starts and the whole clip "
+                          f"from frame 0: stopping at {frames} frames")
+                stopped_early = True
+                break
     except KeyboardInterrupt:
         interrupted = True
         bar.write(f"interrupted: saving the checkpoint at iteration {iteration}")
@@ -679,9 +798,11 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         bar.close()
         logger.close()
         collector.shutdown()
+        if evaluation is not None:
+            evaluation.close()
     # Only reached on completion or Ctrl-C: an error keeps the last periodic checkpoint.
     save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator)
-    return TrainResult(iteration, frames, history, checkpoint_path, interrupted)
+    return TrainResult(iteration, frames, history, checkpoint_path, interrupted, stopped_early)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Package a trained run for shipping: the small policy file, its evaluation and its learning curve.
 
-    python -m train.ship RUN --clip NAME -o assets/policies/NAME
+    python -m train.ship RUN -o assets/policies/NAME [--clip NAME ...]
 
 writes into ``-o``:
 
@@ -9,7 +9,9 @@ writes into ``-o``:
 * ``progress.csv``: the run's training log (6 significant digits);
 * ``learning_curve.png``: success rate and mean return of the episodes that ended in each
   iteration, against training frames;
-* ``eval.json``: ``crisp eval``'s report of the shipped file (RSI starts and frame 0).
+* ``evaluation.png``: the run's periodic deterministic evaluations per clip, when it made any;
+* ``eval.json``: ``crisp eval``'s report of the shipped file (RSI starts and frame 0), per
+  clip under ``"clips"``.
 """
 
 from __future__ import annotations
@@ -31,15 +33,19 @@ class ShipArgs:
 
     Attributes:
         run: training run directory (``checkpoint.pt`` and ``progress.csv``).
-        clip: clip name recorded in the policy (the run may name a machine-specific directory).
+        clip: clip names recorded in the policy and evaluated (default: the run's clips; give
+            them when the run names machine-specific directories).
         output: directory to write into (e.g. ``assets/policies/NAME``).
+        with_critic: keep the critic in ``policy.pt`` (a milestone that ``crisp train
+            --init-from`` continues with both networks warm).
         episodes: RSI episodes of the evaluation.
         smooth: iterations in the learning curve's moving average.
     """
 
     run: tyro.conf.Positional[Path]
-    clip: str
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))]
+    clip: tuple[str, ...] | None = None
+    with_critic: bool = False
     episodes: int = 100
     smooth: int = 50
 
@@ -104,19 +110,26 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
 
 def ship(args: ShipArgs) -> dict:
     """Write the files of the module docstring; returns the evaluation report."""
-    from train.evaluate import evaluate_policy, torch_policy, write_json
+    import shutil
+
+    from train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
     from train.ppo import export_policy, load_policy, policy_training_stats
 
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)
-    policy = export_policy(args.run, args.output, clip=args.clip)
+    policy = export_policy(args.run, args.output, clip=args.clip, with_critic=args.with_critic)
     write_progress(progress, args.output / "progress.csv")
-    plot_learning_curve(progress, args.output / "learning_curve.png", f"{args.clip}: PPO", args.smooth)
     actor, cfg = load_policy(policy)
-    metrics, _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
-                                 scene_aware=cfg.scene_aware)
-    report = {"policy": policy.name, "clip": args.clip, "actor": cfg.model.actor,
-              "training": policy_training_stats(policy), **metrics}
+    clips = policy_clips(cfg.clip)
+    plot_learning_curve(progress, args.output / "learning_curve.png", f"{', '.join(clips)}: PPO", args.smooth)
+    if (Path(args.run) / "evaluation.png").is_file():
+        shutil.copyfile(Path(args.run) / "evaluation.png", args.output / "evaluation.png")
+    reports = {}
+    for clip in clips:
+        reports[Path(clip).name], _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), clip, episodes=args.episodes,
+                                           scene_aware=cfg.scene_aware)
+    report = {"policy": policy.name, "actor": cfg.model.actor, "scene_aware": cfg.scene_aware,
+              "training": policy_training_stats(policy), "clips": reports}
     write_json(report, args.output / "eval.json")
     return report
 
@@ -125,8 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m train.ship``: see :class:`ShipArgs`."""
     args = tyro.cli(ShipArgs, args=argv, prog="python -m train.ship")
     report = ship(args)
-    print(f"wrote {args.output}/policy.pt, progress.csv, learning_curve.png, eval.json; success from RSI starts "
-          f"{report['rsi']['success_rate']:.1%}, whole clip from frame 0: {report['from_frame_0']['success']}")
+    print(f"wrote {args.output}/policy.pt, progress.csv, learning_curve.png, eval.json")
+    for clip, row in report["clips"].items():
+        print(f"{clip}: success from RSI starts {row['rsi']['success_rate']:.1%}, whole clip from frame 0: "
+              f"{row['from_frame_0']['success']}")
     return 0
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class TrackConfig:
@@ -31,6 +33,16 @@ class TrackConfig:
         rsi_first_frame_prob: reference state init from frame 0 with this probability, else
             from a uniformly drawn frame.
         random_start: ``False`` always starts at frame 0 (evaluation).
+        start_sampling: ``"uniform"`` (reference state init: any frame equally likely) or
+            ``"adaptive"`` (frames drawn in proportion to recent failures, mixed with uniform;
+            see :mod:`crisp_gym.envs.start_sampler`).
+        clip_weights: with several clips, the relative probability of drawing each one at a
+            reset, in library order (``None``: equal).
+        adaptive_bin_seconds: length of the time bins failures are counted in.
+        adaptive_uniform_share: share of adaptive starts drawn uniformly instead.
+        adaptive_memory: ended episodes over which failure counts are forgotten (by 1/e).
+        adaptive_lookback: bins before a failure whose probability it also raises.
+        adaptive_lookback_decay: weight of each bin further back (1, d, d², ...).
         render_width, render_height: ``rgb_array`` frame size.
     """
 
@@ -57,6 +69,13 @@ class TrackConfig:
     termination_distance: float = 0.5
     rsi_first_frame_prob: float = 0.1
     random_start: bool = True
+    start_sampling: str = "uniform"
+    clip_weights: tuple[float, ...] | None = None
+    adaptive_bin_seconds: float = 1.0
+    adaptive_uniform_share: float = 0.2
+    adaptive_memory: float = 500.0
+    adaptive_lookback: int = 2
+    adaptive_lookback_decay: float = 0.5
     render_width: int = 640
     render_height: int = 480
 
@@ -71,6 +90,18 @@ class TrackConfig:
             raise ValueError(f"rsi_first_frame_prob must be in [0, 1], got {self.rsi_first_frame_prob}")
         if self.termination_distance <= 0 or self.action_scale <= 0 or self.point_spacing <= 0:
             raise ValueError("termination_distance, action_scale and point_spacing must be positive")
+
+        if self.start_sampling not in ("uniform", "adaptive"):
+            raise ValueError(f"start_sampling must be 'uniform' or 'adaptive', got {self.start_sampling!r}")
+        if self.clip_weights is not None:
+            weights = np.asarray(self.clip_weights, dtype=float)
+            if weights.ndim != 1 or not np.all(np.isfinite(weights)) or weights.min() < 0 or weights.sum() <= 0:
+                raise ValueError(f"clip_weights must be non-negative numbers, not all zero, got {self.clip_weights}")
+            object.__setattr__(self, "clip_weights", tuple(float(w) for w in weights))
+        if not (self.adaptive_bin_seconds > 0 and self.adaptive_memory > 0 and 0 <= self.adaptive_uniform_share <= 1
+                and self.adaptive_lookback >= 0 and 0 <= self.adaptive_lookback_decay <= 1):
+            raise ValueError("adaptive_bin_seconds and adaptive_memory must be positive, adaptive_uniform_share and "
+                             "adaptive_lookback_decay in [0, 1], adaptive_lookback non-negative")
 
     @property
     def substeps(self) -> int:

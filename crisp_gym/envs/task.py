@@ -1,50 +1,49 @@
-"""One clip's tracking task: the composed model, the reference and the spaces.
+"""The tracking task over a motion library: the composed model, the references and the spaces.
 
-Shared by the single and the batched env; it owns no simulation state.
+Shared by the single and the batched env; it owns no simulation state. Every per-simulation
+method takes the simulations' clip indices and frames (frame numbers of their own clips).
 """
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
 
 import gymnasium as gym
-import mujoco
 import numpy as np
-from scipy.spatial import cKDTree
 
-from crisp_gym.clip import Clip
 from crisp_gym.envs import tracking
 from crisp_gym.envs.config import TrackConfig
-from crisp_gym.mjcf_scene import scene_surface
-from crisp_gym.motion import humanoid_body_ids, humanoid_qpos_adr
-from crisp_gym.registry import load_clip
+from crisp_gym.envs.library import ClipSource, MotionLibrary
+from crisp_gym.envs.start_sampler import StartSampler
 
 
 class TrackingTask:
-    """Everything about tracking one clip that does not change during an episode."""
+    """Everything about tracking a library of clips that does not change during an episode.
 
-    def __init__(self, clip: str | os.PathLike | Clip, config: TrackConfig):
-        self.clip = clip if isinstance(clip, Clip) else load_clip(clip)
+    Args:
+        clip: one clip source or several (names, registry tags, directories, loaded clips).
+        config: the env config.
+    """
+
+    def __init__(self, clip: ClipSource | Sequence[ClipSource], config: TrackConfig):
         self.config = config
-        # Box scenes come from their primitives; other scenes bring their geometry in scene.xml.
-        scene_xml = None if self.clip.scene_kind == "boxes" else self.clip.scene_xml
-        self.model = tracking.build_track_model(self.clip.boxes, timestep=1.0 / config.sim_hz, scene_xml=scene_xml)
-        if humanoid_qpos_adr(self.model) != 0:
-            raise ValueError("the humanoid's free joint must come first in the composed model")
-        self.body_ids = humanoid_body_ids(self.model)
-        self.reference = tracking.Reference.from_motion(self.clip.motion, self.model, config.control_hz)
+        self.library = MotionLibrary(clip, config)
+        self.model = self.library.model
+        self.body_ids = self.library.body_ids
+        self.reference = self.library.reference
         self.ranges = tracking.hinge_ranges()
-        self.points = None
-        if config.scene_aware:
-            self.points = (tracking.scene_samples(self.clip.boxes, self.reference, config) if scene_xml is None
-                           else tracking.mesh_scene_samples(scene_surface(scene_xml), self.reference, config))
-        if self.points is not None and len(self.points) == 0:
-            raise ValueError("scene_aware=True but the scene has no surface within point_radius of the motion")
-        self.point_tree = cKDTree(self.points) if self.points is not None else None
+        if config.clip_weights is not None and len(config.clip_weights) != self.library.num_clips:
+            raise ValueError(f"clip_weights has {len(config.clip_weights)} entries for "
+                             f"{self.library.num_clips} clips {self.library.names}")
 
     @property
-    def num_frames(self) -> int:
-        return self.reference.num_frames
+    def clip_names(self) -> list[str]:
+        return self.library.names
+
+    @property
+    def num_frames(self) -> np.ndarray:
+        """(C,) frames of each clip at the control rate."""
+        return self.library.num_frames
 
     def observation_space(self) -> gym.spaces.Dict:
         cfg = self.config
@@ -59,46 +58,73 @@ class TrackingTask:
     def action_space(self) -> gym.spaces.Box:
         return gym.spaces.Box(-1.0, 1.0, (self.model.nu,), np.float32)
 
-    def sample_start_frames(self, rng: np.random.Generator, count: int) -> np.ndarray:
-        return tracking.sample_start_frames(rng, count, self.num_frames, self.config)
+    def start_sampler(self) -> StartSampler:
+        """A fresh start-frame sampler for this library (one per env: adaptive ones keep counts)."""
+        return StartSampler(self.num_frames, self.config)
 
-    def reset_state(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, nq) qpos and (N, nv) qvel of the reference at ``frames``."""
-        return self.reference.qpos[frames].copy(), self.reference.qvel[frames].copy()
+    def clip_index(self, clip: int | str) -> int:
+        """The library index of a clip given by index or name."""
+        if isinstance(clip, (int, np.integer)) and 0 <= clip < self.library.num_clips:
+            return int(clip)
+        if isinstance(clip, str) and clip in self.library.names:
+            return self.library.names.index(clip)
+        raise ValueError(f"clip must be an index below {self.library.num_clips} or one of {self.library.names}, "
+                         f"got {clip!r}")
 
-    def observe(self, state: tracking.SimState, frame: np.ndarray) -> dict[str, np.ndarray]:
+    def check_starts(self, clips: np.ndarray, frames: np.ndarray) -> None:
+        """Raise unless every frame can start an episode of its clip (any frame but the last)."""
+        bad = (frames < 0) | (frames >= self.num_frames[clips] - 1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"start_frame must be in [0, {self.num_frames[clips[i]] - 2}] for clip "
+                             f"{self.library.names[clips[i]]!r}, got {int(frames[i])}")
+
+    def reset_state(self, clips: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, nq) qpos, (N, nv) qvel and (N, nu) PD targets of the reference at ``frames``."""
+        rows = self.library.global_frames(clips, frames)
+        ref = self.reference
+        return ref.qpos[rows].copy(), ref.qvel[rows].copy(), ref.dof_pos[rows].copy()
+
+    def observe(self, state: tracking.SimState, clips: np.ndarray, frames: np.ndarray) -> dict[str, np.ndarray]:
         """Batched observation dict, float32."""
         cfg = self.config
+        rows = self.library.global_frames(clips, frames)
+        future = tracking.future_frames(rows, cfg.num_future_frames, self.library.last_frames(clips))
         obs = {
             "proprio": tracking.proprioception(state),
-            "targets": tracking.target_features(
-                state, self.reference, tracking.future_frames(frame, cfg.num_future_frames, self.num_frames)),
+            "targets": tracking.target_features(state, self.reference, future),
         }
         if cfg.scene_aware:
-            obs["points"] = tracking.nearest_points(state, self.point_tree, cfg.num_points)
+            points = np.empty((len(rows), cfg.num_points, 3))
+            for clip in np.unique(clips):
+                sims = np.flatnonzero(clips == clip)
+                points[sims] = tracking.nearest_points(state.body_pos[sims, 0], state.body_quat[sims, 0],
+                                                       self.library.point_trees[clip], cfg.num_points)
+            obs["points"] = points
         return {k: v.astype(np.float32) for k, v in obs.items()}
 
-    def evaluate(self, state: tracking.SimState, frame: np.ndarray):
+    def tracking_error(self, state: tracking.SimState, clips: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """(N,) largest distance (m) of any body from its reference."""
+        return tracking.max_body_error(state, self.reference, self.library.global_frames(clips, frames))
+
+    def evaluate(self, state: tracking.SimState, clips: np.ndarray, frames: np.ndarray):
         """Reward, its terms, termination, truncation (end of clip) and the tracking error."""
-        terms = tracking.reward_terms(state, self.reference, frame, self.config)
+        rows = self.library.global_frames(clips, frames)
+        terms = tracking.reward_terms(state, self.reference, rows, self.config)
         reward = sum(terms.values())
-        error = tracking.max_body_error(state, self.reference, frame)
+        error = tracking.max_body_error(state, self.reference, rows)
         finite = np.isfinite(state.qpos).all(axis=1) & np.isfinite(state.qvel).all(axis=1)
         terminated = (error > self.config.termination_distance) | ~finite
-        truncated = (frame >= self.num_frames - 1) & ~terminated
+        truncated = (frames >= self.num_frames[clips] - 1) & ~terminated
         return np.where(finite, reward, 0.0), terms, terminated, truncated, error
 
-    def controls(self, action: np.ndarray, next_frame: np.ndarray) -> np.ndarray:
+    def controls(self, action: np.ndarray, clips: np.ndarray, next_frames: np.ndarray) -> np.ndarray:
         action = np.asarray(action, dtype=float)
         if action.shape[-1] != self.model.nu or not np.all(np.isfinite(action)):
             raise ValueError(f"actions must be finite with {self.model.nu} entries, got shape {action.shape}")
-        return tracking.pd_targets(action, self.reference, next_frame, self.config, self.ranges)
+        rows = self.library.global_frames(clips, next_frames)
+        return tracking.pd_targets(action, self.reference, rows, self.config, self.ranges)
 
     def read_state(self, qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force) -> tracking.SimState:
         return tracking.sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, self.body_ids)
 
-
-def forward_velocity_stage(model: mujoco.MjModel, data: mujoco.MjData) -> None:
-    """Position- and velocity-dependent quantities at the current state (as mjSTAGE_VEL)."""
-    mujoco.mj_fwdPosition(model, data)
-    mujoco.mj_fwdVelocity(model, data)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
 from dataclasses import fields, replace
 from typing import Any
 
@@ -10,10 +10,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from crisp_gym.clip import Clip
 from crisp_gym.envs.config import TrackConfig, default_config
+from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs.task import TrackingTask
-from crisp_gym.envs.tracking import max_body_error
 
 _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
 
@@ -32,6 +31,12 @@ class CrispTrackEnv(gym.Env):
 
     The simulation runs at 120 Hz with ``implicitfast``; the policy acts at 30 Hz (4
     substeps). Every :class:`~crisp_gym.envs.config.TrackConfig` field is a keyword.
+
+    ``clip`` is a clip name, a registry tag (``"bundled"``: every bundled clip), a clip
+    directory, or a list of these: a *motion library* (:mod:`crisp_gym.envs.library`). Every
+    reset then draws a clip (``clip_weights``) and a start frame (``start_sampling``:
+    uniform or adaptive, :mod:`crisp_gym.envs.start_sampler`); observations mean the same
+    whichever clip is tracked.
 
     ## Action space
     ``Box(-1, 1, (69,))``: PD targets of the 69 hinges, by default a residual on the next
@@ -57,27 +62,31 @@ class CrispTrackEnv(gym.Env):
     ``terminated`` when any body is more than ``termination_distance`` (0.5 m) from its
     reference (or the state stops being finite); ``truncated`` at the clip's last frame, where
     ``info["success"]`` is ``True``. Starts use reference state init (10 % from frame 0);
-    ``reset(options={"start_frame": k})`` picks the frame.
+    ``reset(options={"start_frame": k, "clip": c})`` picks the frame (and the clip, by index
+    or name).
 
     ## Info
-    ``frame``, ``start_frame``, ``reward_terms``, ``max_body_error`` (m), ``success``.
+    ``clip`` (index into ``env.task.clip_names``), ``frame``, ``start_frame``,
+    ``reward_terms``, ``max_body_error`` (m), ``success``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
-    def __init__(self, clip: str | os.PathLike | Clip = "flat_walk", scene_aware: bool = False,
+    def __init__(self, clip: ClipSource | Sequence[ClipSource] = "flat_walk", scene_aware: bool = False,
                  render_mode: str | None = None, config: TrackConfig | None = None, **overrides: Any):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.config = make_config(config, {"scene_aware": scene_aware, **overrides})
         self.task = TrackingTask(clip, self.config)
+        self.start_sampler = self.task.start_sampler()
         self.model = self.task.model
         self.data = mujoco.MjData(self.model)
         self.observation_space = self.task.observation_space()
         self.action_space = self.task.action_space()
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": self.config.control_hz}
-        self._frame = 0
+        self._clip = np.zeros(1, dtype=int)
+        self._frame = np.zeros(1, dtype=int)
         self._start_frame = 0
         self._renderer: mujoco.Renderer | None = None
 
@@ -89,42 +98,44 @@ class CrispTrackEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         options = options or {}
+        forced = [self.task.clip_index(options["clip"])] if "clip" in options else None
+        clips, frames = self.start_sampler.sample(self.np_random, 1, clips=forced)
         if "start_frame" in options:
-            start = int(options["start_frame"])
-            if not 0 <= start < self.task.num_frames - 1:
-                raise ValueError(f"start_frame must be in [0, {self.task.num_frames - 2}], got {start}")
-        else:
-            start = int(self.task.sample_start_frames(self.np_random, 1)[0])
-        self._frame = self._start_frame = start
-        qpos, qvel = self.task.reset_state(np.array([start]))
+            frames = np.array([int(options["start_frame"])])
+        self.task.check_starts(clips, frames)
+        self._clip, self._frame = clips, frames
+        self._start_frame = int(frames[0])
+        qpos, qvel, ctrl = self.task.reset_state(clips, frames)
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = qpos[0]
         self.data.qvel[:] = qvel[0]
-        self.data.ctrl[:] = self.task.reference.dof_pos[start]
+        self.data.ctrl[:] = ctrl[0]
         mujoco.mj_step1(self.model, self.data)
-        frame, state = np.array([start]), self._state()
-        obs = self.task.observe(state, frame)
-        error = max_body_error(state, self.task.reference, frame)
+        state = self._state()
+        obs = self.task.observe(state, clips, frames)
+        error = self.task.tracking_error(state, clips, frames)
         return ({k: v[0] for k, v in obs.items()},
-                {"frame": start, "start_frame": start, "max_body_error": float(error[0])})
+                {"clip": int(clips[0]), "frame": self._start_frame, "start_frame": self._start_frame,
+                 "max_body_error": float(error[0])})
 
     def step(self, action):
-        next_frame = np.array([self._frame + 1])
-        self.data.ctrl[:] = self.task.controls(np.asarray(action)[None], next_frame)[0]
+        next_frame = self._frame + 1
+        self.data.ctrl[:] = self.task.controls(np.asarray(action)[None], self._clip, next_frame)[0]
         # step2/step1 split: the derived fields end at the new state, as the batch's mjSTAGE_VEL.
         for _ in range(self.config.substeps):
             mujoco.mj_step2(self.model, self.data)
             mujoco.mj_step1(self.model, self.data)
-        self._frame += 1
+        self._frame = next_frame
         state = self._state()
-        reward, terms, terminated, truncated, error = self.task.evaluate(state, next_frame)
-        obs = self.task.observe(state, next_frame)
-        info = {"frame": self._frame, "start_frame": self._start_frame,
+        reward, terms, terminated, truncated, error = self.task.evaluate(state, self._clip, next_frame)
+        obs = self.task.observe(state, self._clip, next_frame)
+        if terminated[0] or truncated[0]:
+            self.start_sampler.record(self._clip, next_frame, terminated)
+        info = {"clip": int(self._clip[0]), "frame": int(next_frame[0]), "start_frame": self._start_frame,
                 "reward_terms": {k: float(v[0]) for k, v in terms.items()},
                 "max_body_error": float(error[0]), "success": bool(truncated[0])}
         return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),
                 bool(truncated[0]), info)
-
     def render(self):
         if self.render_mode != "rgb_array":
             return None

@@ -24,7 +24,8 @@ key                    content                                                  
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import mujoco
@@ -45,25 +46,27 @@ TARGET_DIM = NUM_BODIES * (6 + 6 + 3 + 3)
 REWARD_TERMS = ("pos", "rot", "vel", "ang_vel", "height", "energy")
 
 
-def build_track_spec(boxes: list[Box], timestep: float, scene_xml: Path | None = None) -> mujoco.MjSpec:
+def build_track_spec(boxes: list[Box], timestep: float,
+                     scene_xmls: Sequence[tuple[Path, np.ndarray]] = ()) -> mujoco.MjSpec:
     """The humanoid composed with the scene's boxes, plus a camera that follows the pelvis.
 
-    ``scene_xml``, for a clip whose scene is not boxes, adds that file's geometry (meshes,
-    heightfields) as well.
+    ``scene_xmls``, for clips whose scene is not boxes, adds each file's geometry (meshes,
+    heightfields) shifted by its (3,) offset.
     """
     spec = build_humanoid_spec(HumanoidConfig(timestep=timestep))
     add_boxes(spec, boxes)
-    if scene_xml is not None:
-        attach_scene(spec, scene_xml)
+    for i, (scene_xml, offset) in enumerate(scene_xmls):
+        attach_scene(spec, scene_xml, prefix="scene/" if len(scene_xmls) == 1 else f"scene{i}/", offset=offset)
     spec.worldbody.add_light(name="key", pos=(0, 0, 5), dir=(0, 0, -1), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
     spec.body("Pelvis").add_camera(name="follow", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
                                    pos=(0.0, -3.5, 0.6), xyaxes=(1, 0, 0, 0, 0.17, 1))
     return spec
 
 
-def build_track_model(boxes: list[Box], timestep: float, scene_xml: Path | None = None) -> mujoco.MjModel:
+def build_track_model(boxes: list[Box], timestep: float,
+                      scene_xmls: Sequence[tuple[Path, np.ndarray]] = ()) -> mujoco.MjModel:
     """Compile :func:`build_track_spec`: the model ``CrispTrack-v0`` simulates."""
-    return build_track_spec(boxes, timestep, scene_xml).compile()
+    return build_track_spec(boxes, timestep, scene_xmls).compile()
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,18 @@ class Reference:
         k = compute_kinematics(motion, model)
         return cls(qpos=k.qpos, qvel=k.qvel, body_pos=k.body_pos, body_quat=k.body_quat,
                    body_lin_vel=k.body_lin_vel, body_ang_vel=k.body_ang_vel)
+
+    def translated(self, offset: np.ndarray) -> Reference:
+        """The same motion shifted by ``offset`` (3,) (velocities and rotations unchanged)."""
+        offset = np.asarray(offset, dtype=float)
+        qpos = self.qpos.copy()
+        qpos[:, :3] += offset
+        return replace(self, qpos=qpos, body_pos=self.body_pos + offset)
+
+    @classmethod
+    def concatenate(cls, references: Sequence[Reference]) -> Reference:
+        """``references`` end to end (frame rows stacked)."""
+        return cls(**{f.name: np.concatenate([getattr(r, f.name) for r in references]) for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -154,26 +169,25 @@ def target_features(state: SimState, ref: Reference, frames: np.ndarray) -> np.n
     return np.concatenate([rel_rot, ref_rot, diff_pos, rel_pos], axis=-1).reshape(n, k, -1)
 
 
-def future_frames(frame: np.ndarray, num_future: int, num_frames: int) -> np.ndarray:
-    """(N, K) the next K frame indices after ``frame``, held at the clip's last frame."""
-    return np.minimum(frame[:, None] + np.arange(1, num_future + 1), num_frames - 1)
+def future_frames(frame: np.ndarray, num_future: int, last_frame: int | np.ndarray) -> np.ndarray:
+    """(N, K) the next K frame indices after ``frame``, held at ``last_frame`` (a scalar or (N,))."""
+    return np.minimum(frame[:, None] + np.arange(1, num_future + 1), np.reshape(last_frame, (-1, 1)))
 
 
-def nearest_points(state: SimState, tree: cKDTree, count: int) -> np.ndarray:
+def nearest_points(root_pos: np.ndarray, root_quat: np.ndarray, tree: cKDTree, count: int) -> np.ndarray:
     """(N, count, 3) the scene samples nearest the pelvis, in its heading frame, nearest first.
 
-    ``tree`` is a KD-tree over the scene samples (``cKDTree(points)``): with ~10⁴ samples and
-    64 envs a brute-force distance matrix made this query a third of a training step.
+    ``root_pos`` (N, 3) and ``root_quat`` (N, 4) are the pelvis's; ``tree`` is a KD-tree over
+    the scene samples (``cKDTree(points)``): with ~10⁴ samples and 64 envs a brute-force
+    distance matrix made this query a third of a training step.
     """
-    root = state.body_pos[:, 0]
     count_available = min(count, tree.n)
-    _, idx = tree.query(root, k=count_available)
-    idx = np.asarray(idx).reshape(len(root), count_available)
-    chosen = tree.data[idx] - root[:, None]
+    _, idx = tree.query(root_pos, k=count_available)
+    idx = np.asarray(idx).reshape(len(root_pos), count_available)
+    chosen = tree.data[idx] - root_pos[:, None]
     if count_available < count:  # fewer samples than slots: repeat the farthest
         chosen = np.concatenate([chosen, np.repeat(chosen[:, -1:], count - count_available, axis=1)], axis=1)
-    inv = _heading_inverse(state.body_quat[:, 0])
-    return quat.rotate(inv, chosen)
+    return quat.rotate(_heading_inverse(root_quat), chosen)
 
 
 def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackConfig) -> dict[str, np.ndarray]:
@@ -212,14 +226,6 @@ def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: 
         return ref.dof_pos[next_frame] + cfg.action_scale * action
     mid, half = ranges.mean(axis=1), 0.5 * (ranges[:, 1] - ranges[:, 0])
     return mid + half * action
-
-
-def sample_start_frames(rng: np.random.Generator, count: int, num_frames: int, cfg: TrackConfig) -> np.ndarray:
-    """Reference state init: frame 0 with ``rsi_first_frame_prob``, else uniform (never the last)."""
-    if not cfg.random_start:
-        return np.zeros(count, dtype=int)
-    uniform = rng.integers(0, num_frames - 1, size=count)
-    return np.where(rng.random(count) < cfg.rsi_first_frame_prob, 0, uniform)
 
 
 def scene_samples(boxes: list[Box], ref: Reference, cfg: TrackConfig) -> np.ndarray:
