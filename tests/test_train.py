@@ -449,3 +449,12 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
                        until_success=0.9)
     result = train(cfg)
     assert result.reached_success and result.iteration == 3
+
+
+def test_actor_learning_rate_ramps_up_after_the_critic_warmup() -> None:
+    from train.ppo import actor_lr_at
+
+    lrs = [actor_lr_at(i, start=20, ramp=100, lr=3e-5) for i in range(0, 200)]
+    assert all(lr == 0 for lr in lrs[:20])
+    assert lrs[20] == pytest.approx(3e-7) and lrs[119] == pytest.approx(3e-5) and lrs[199] == pytest.approx(3e-5)
+    assert np.all(np.diff(lrs) >= 0)

@@ -104,6 +104,11 @@ class TrainConfig:
             architecture must match this run's.
         critic_warmup: with ``init_from`` and no critic in it, iterations that train only the
             critic, so a random critic's advantages do not undo the loaded actor.
+        actor_lr_warmup: with ``init_from``, iterations over which the actor's learning rate
+            rises linearly from 0 once it starts training. Adam's first steps move every
+            weight by the full learning rate whatever the gradient's size: from a trained
+            actor the first update was measured at KL 0.15 with half the samples clipped
+            (0.01–0.02 later), and a 97 %-success policy fell to 44 % within 0.5 M frames.
         resume: continue from ``output/checkpoint.pt``.
         progress: show a progress bar.
     """
@@ -140,6 +145,7 @@ class TrainConfig:
     until_success: float | None = None
     init_from: Path | None = None
     critic_warmup: int = 20
+    actor_lr_warmup: int = 100
     resume: bool = False
     progress: bool = True
 
@@ -158,8 +164,8 @@ class TrainConfig:
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
         if self.critic_loss not in ("l2", "smooth_l1"):
             raise ValueError(f"critic_loss must be 'l2' or 'smooth_l1', got {self.critic_loss!r}")
-        if self.eval_every < 0 or self.critic_warmup < 0:
-            raise ValueError("eval_every and critic_warmup must be non-negative")
+        if self.eval_every < 0 or self.critic_warmup < 0 or self.actor_lr_warmup < 0:
+            raise ValueError("eval_every, critic_warmup and actor_lr_warmup must be non-negative")
         if self.until_success is not None and not (0 < self.until_success <= 1 and self.eval_every > 0):
             raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
         rates = {name: getattr(self, name) for name in ("actor_lr", "critic_lr", "clip_epsilon", "max_grad_norm")}
@@ -602,6 +608,12 @@ class TrainResult:
     reached_success: bool = False
 
 
+def actor_lr_at(iteration: int, start: int, ramp: int, lr: float) -> float:
+    """The actor's learning rate at ``iteration`` of a warm-started run: 0 before ``start``, then
+    rising linearly to ``lr`` over ``ramp`` iterations."""
+    return lr * min(1.0, max(0, iteration - start + 1) / ramp)
+
+
 def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.optim.Optimizer, agent: Agent,
                cfg: TrainConfig, generator: torch.Generator, train_actor: bool = True) -> dict[str, float]:
     """``cfg.epochs`` passes of shuffled minibatches over a flat batch with advantages; mean losses.
@@ -666,8 +678,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists: pass resume=True (--resume) to continue that run, "
                               f"or choose another output directory")
-    warm = None
-    if cfg.init_from is not None and saved is None:
+    warm = None  # the warm start's source (read on resume too: its warm-up schedule still applies)
+    if cfg.init_from is not None:
         warm_path, warm = _read_policy_source(cfg.init_from)
         _check_resumable(config_from_dict(warm["config"]), cfg, f"initialise from {warm_path}")
     out.mkdir(parents=True, exist_ok=True)
@@ -703,12 +715,13 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             group["lr"] = lr
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])
-    elif warm is not None:
+    elif warm is not None:  # a new warm-started run (a resumed one has its weights in the checkpoint)
         agent.actor.load_state_dict(warm["actor"])  # the observation statistics come with it
         if "critic" in warm:
             agent.critic.load_state_dict(warm["critic"])
     # a loaded actor with a fresh critic: let the critic learn its values before the actor moves
     critic_only_until = cfg.critic_warmup if warm is not None and "critic" not in warm else 0
+    ramp = cfg.actor_lr_warmup if warm is not None else 0
 
     collector = Collector(env, agent.policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1,
                           env_device="cpu", policy_device=device, storing_device=device,
@@ -751,6 +764,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 with torch.no_grad():
                     estimate_values(data, agent.value)
                     gae(data)
+                if ramp:
+                    optimizer.param_groups[0]["lr"] = actor_lr_at(iteration, critic_only_until, ramp, cfg.actor_lr)
                 losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator,
                                     train_actor=iteration >= critic_only_until)
             agent.normalizer.update(data["proprio"], data["targets"])
