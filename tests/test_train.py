@@ -458,3 +458,33 @@ def test_actor_learning_rate_ramps_up_after_the_critic_warmup() -> None:
     assert all(lr == 0 for lr in lrs[:20])
     assert lrs[20] == pytest.approx(3e-7) and lrs[119] == pytest.approx(3e-5) and lrs[199] == pytest.approx(3e-5)
     assert np.all(np.diff(lrs) >= 0)
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tmp_path: Path, sig: str) -> None:
+    """A run started in the background (SIGINT ignored, as ``cmd &`` does) and stopped with
+    SIGTERM or SIGINT writes its checkpoint at the iteration it reached and exits with 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from train.ppo import load_checkpoint
+
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "train.ppo", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
+               "--num-envs", "2", "--steps-per-env", "16", "--checkpoint-every", "1000", "--no-progress",
+               "--model.mlp-actor-hidden", "32", "--model.critic-hidden", "32"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None:
+        progress = out / "progress.csv"
+        if progress.is_file() and len(progress.read_text().splitlines()) > 3:
+            break
+        time.sleep(0.2)
+    process.send_signal(getattr(signal, sig))
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr.decode()[-2000:]
+    rows = list(csv.DictReader(open(out / "progress.csv")))
+    assert load_checkpoint(out)["iteration"] == int(rows[-1]["iteration"]) >= 3

@@ -26,12 +26,16 @@ Outputs in ``output``: ``config.json``, ``checkpoint.pt``, ``progress.csv`` and,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
 import os
+import signal
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any
@@ -608,6 +612,28 @@ class TrainResult:
     reached_success: bool = False
 
 
+@contextlib.contextmanager
+def _stop_signals_interrupt() -> Iterator[None]:
+    """SIGINT and SIGTERM end training like Ctrl-C, with a checkpoint.
+
+    A job started in the background (``nohup crisp train ... &``) ignores SIGINT, and schedulers
+    and sessions stop jobs with SIGTERM; both would otherwise lose the work since the last
+    periodic checkpoint. Only the main thread can install handlers; elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def actor_lr_at(iteration: int, start: int, ramp: int, lr: float) -> float:
     """The actor's learning rate at ``iteration`` of a warm-started run: 0 before ``start``, then
     rising linearly to ``lr`` over ``ramp`` iterations."""
@@ -739,8 +765,10 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     bar = tqdm(total=cfg.frames, initial=min(frames, cfg.frames), unit="frame", unit_scale=True,
                disable=not cfg.progress, dynamic_ncols=True)
     start_time = time.perf_counter()
+    stack = contextlib.ExitStack()
     interrupted = stopped_early = False
     try:
+        stack.enter_context(_stop_signals_interrupt())
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
@@ -808,8 +836,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 break
     except KeyboardInterrupt:
         interrupted = True
-        bar.write(f"interrupted: saving the checkpoint at iteration {iteration}")
+        bar.write(f"interrupted: saving the checkpoint at iteration {iteration}", file=sys.stderr)
     finally:
+        stack.close()
         bar.close()
         logger.close()
         collector.shutdown()
