@@ -10,18 +10,24 @@ frame is parallel to the file's world frame.
 Retargeting maps BVH joints to our 24 bodies by name (:data:`JOINT_MAPS`) and aligns rest
 poses: our humanoid rests in a T-pose, a BVH may rest with arms down or legs apart, so each
 of our bodies takes the world rotation of its BVH joint *relative to the BVH rest*, composed
-with the fixed rotation that turns our rest bone into the BVH's rest bone. The file's axes
+with the fixed rotation that turns our rest bone into the BVH's rest bone (a foot only to the
+BVH foot's heading: both rest poses stand on flat feet). The file's axes
 (up from ``up_axis``, facing from the rest hips) become ours: z up, facing +x, left +y.
 The root follows the file's root joint; only its height is then corrected, by a smooth
 per-frame offset that puts the planted feet on the floor (captured floors drift by a few
-centimetres within a take, and one constant offset leaves feet floating or sunk).
+centimetres within a take, and one constant offset leaves feet floating or sunk). Before
+that, planted feet are laid flat (:func:`~crisp_gym.motion.level_feet`): their soles are
+turned level across and the toes are posed from the floor, not from the file. Captured feet
+are often rolled onto an edge (CMU's by 10-20°) and captured toes curl into the floor and flip
+by 80° within a few frames; both lifted the body onto the edge or the toe tips, and the
+simulated toes, fighting the floor, chattered at hundreds of rad/s.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -29,7 +35,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, default_rest_joints, joint_range_deg
-from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, rotations_to_hinge_angles
+from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, level_feet, rotations_to_hinge_angles
 
 log = logging.getLogger(__name__)
 
@@ -329,6 +335,8 @@ _END_DIRECTIONS = {"L_Toe": (1.0, 0.0, 0.0), "R_Toe": (1.0, 0.0, 0.0), "Head": (
                    "L_Hand": (0.0, 1.0, 0.0), "R_Hand": (0.0, -1.0, 0.0)}
 # The child whose joint gives a multi-child body its bone (the pelvis has none).
 _BONE_CHILD = {"Chest": "Neck"}
+# Bodies aligned by their heading alone (see rest_alignment).
+_FEET = ("L_Ankle", "R_Ankle")
 
 # Metres per file unit that BVH files use; CMU's ASF unit is 1/0.45 inch.
 KNOWN_UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "inch": 0.0254, "cmu": 0.0254 / 0.45}
@@ -425,7 +433,13 @@ def _tip(skeleton: BvhSkeleton, rest: np.ndarray, joint: int, eps: float) -> np.
 
 
 def rest_alignment(skeleton: BvhSkeleton, mapping: Mapping[str, int], to_ours: np.ndarray) -> dict[str, np.ndarray]:
-    """Per mapped body, the rotation (our axes) taking our rest bone onto the BVH's rest bone."""
+    """Per mapped body, the rotation (our axes) taking our rest bone onto the BVH's rest bone.
+
+    Feet are the exception: a rest pose stands on flat feet, and how steeply the ankle-to-toe
+    bone descends is anatomy, not posture (ours 18°, CMU's 10-13°), so a foot is only turned to
+    the BVH foot's heading; matching the bone would stand our flat foot on its heel. A rest
+    foot pointing more than 60° down is not standing, and is aligned by its bone.
+    """
     rest = skeleton.rest_positions()
     eps = 1e-6 * np.ptp(rest, axis=0).max()
     ours = default_rest_joints(1.0)
@@ -446,6 +460,8 @@ def rest_alignment(skeleton: BvhSkeleton, mapping: Mapping[str, int], to_ours: n
             align[body] = np.eye(3)  # nothing below the joint to align with
             continue
         bvh_dir = to_ours @ (target - rest[joint])
+        if body in _FEET and np.linalg.norm(bvh_dir[:2]) > 0.5 * np.linalg.norm(bvh_dir):
+            ours_dir, bvh_dir = ours_dir * [1.0, 1.0, 0.0], bvh_dir * [1.0, 1.0, 0.0]
         align[body] = _shortest_arc(ours_dir / np.linalg.norm(ours_dir), bvh_dir / np.linalg.norm(bvh_dir))
     return align
 
@@ -455,7 +471,7 @@ class BvhRetarget:
     """The result of :func:`retarget_bvh`, with what was done to get it.
 
     Attributes:
-        motion: the humanoid motion, grounded (planted feet on z = 0).
+        motion: the humanoid motion, grounded (planted feet flat on z = 0).
         unit_scale: metres per BVH unit used.
         joints: our body -> the BVH joint name that drives it.
         to_ours: (3, 3) rotation from the file's axes to ours.
@@ -482,10 +498,12 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     """Retarget a parsed BVH onto the humanoid (see the module docstring for the method).
 
     ``joint_map`` (our body -> BVH joint name) replaces the built-in tables; ``model`` is the
-    humanoid used for grounding (the default 1.70 m one when ``None``). ``grounding`` puts the
-    planted feet on the floor frame by frame (motion capture floors drift by centimetres over a
-    take, see :func:`~crisp_gym.motion.stance_floor`); ``None`` shifts the whole motion by one
-    offset instead (:func:`~crisp_gym.motion.ground`).
+    humanoid used for grounding (the default 1.70 m one when ``None``). ``grounding`` lays the
+    planted feet flat (:func:`~crisp_gym.motion.level_feet`) and puts them on the floor frame by
+    frame (motion capture floors drift by centimetres over a take, see
+    :func:`~crisp_gym.motion.stance_floor`); ``None`` keeps the feet as retargeted and shifts the
+    whole motion by one offset instead (:func:`~crisp_gym.motion.ground`). Clipping into the
+    joint ranges comes after the feet are laid flat.
     """
     skeleton = clip.skeleton
     mapping = match_joints(skeleton, joint_map)
@@ -509,19 +527,21 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
             glob[body] = glob[parent]
         local[:, i] = glob[body] if parent is None else np.swapaxes(glob[parent], 1, 2) @ glob[body]
 
-    angles = rotations_to_hinge_angles(local[:, 1:]).reshape(t, -1)
+    root_pos = positions[:, mapping["Pelvis"]] @ to_ours.T * unit_scale
+    root_quat = Rotation.from_matrix(glob["Pelvis"]).as_quat(scalar_first=True)
+    motion = Motion(fps=clip.fps, root_pos=root_pos, root_quat=root_quat,
+                    dof_pos=rotations_to_hinge_angles(local[:, 1:]).reshape(t, -1))
+    model = model if model is not None else build_humanoid()
+    if grounding is not None:
+        motion = level_feet(motion, model, grounding)
     clipped_fraction, max_clip = 0.0, 0.0
     if clip_to_range:
         ranges = np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
-        clipped = np.clip(angles, ranges[:, 0], ranges[:, 1])
-        moved = np.abs(clipped - angles)
+        clipped = np.clip(motion.dof_pos, ranges[:, 0], ranges[:, 1])
+        moved = np.abs(clipped - motion.dof_pos)
         clipped_fraction = float(np.mean(moved > 1e-9))
         max_clip = float(np.rad2deg(moved.max()))
-        angles = clipped
-    root_pos = positions[:, mapping["Pelvis"]] @ to_ours.T * unit_scale
-    root_quat = Rotation.from_matrix(glob["Pelvis"]).as_quat(scalar_first=True)
-    motion = Motion(fps=clip.fps, root_pos=root_pos, root_quat=root_quat, dof_pos=angles)
-    model = model if model is not None else build_humanoid()
+        motion = replace(motion, dof_pos=clipped)
     grounded = ground(motion, model) if grounding is None else ground_stance(motion, model, grounding)
     offset = grounded.root_pos[:, 2] - motion.root_pos[:, 2]
     if clipped_fraction > 0:

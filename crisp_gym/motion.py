@@ -18,12 +18,23 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
 
 FORMAT_VERSION = 1
+_TRUNCATE = 2.0  # standard deviations the stance corrections' Gaussian low-pass reaches
+
+
+def _low_pass(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian low-pass over frames, its kernel cut at ``_TRUNCATE`` standard deviations."""
+    return gaussian_filter1d(x, sigma, mode="nearest", truncate=_TRUNCATE)
+
+
+# Passes that lower the stance floor by its low-passed excess over the feet before the final
+# envelope: on CMU 131_01-03 five halve the stance frames the envelope alone leaves floating.
+_UNDERCUT_PASSES = 5
 
 
 def _as_names(names, expected_len: int, what: str) -> tuple[str, ...]:
@@ -361,7 +372,8 @@ def ground(motion: Motion, model: mujoco.MjModel, floor_height: float = 0.0,
 
 @dataclass(frozen=True)
 class StanceGrounding:
-    """Settings of :func:`stance_floor`, which follows a capture whose floor height drifts.
+    """Settings of :func:`stance_floor`, which follows a capture whose floor height drifts, and
+    of :func:`level_feet`, which lays the planted feet flat.
 
     Attributes:
         stance_speed: m/s. A foot is planted while its ankle and toe joints both move
@@ -371,12 +383,16 @@ class StanceGrounding:
             estimate (half power at about 0.13 / smoothing Hz), so the correction follows drift
             over steps and postures without adding jitter from frame-to-frame foot noise.
         max_shift: m. The floor estimate stays within this distance of its midpoint, so the
-            root path stays within it of the source's up to one constant floor offset.
+            root path stays within it of the source's up to one constant floor offset. It
+            bounds what a misdetected stance (a foot held still in the air) can flatten, and
+            must cover a capture's own floor error: the planted feet of CMU 131_01 sit 13 cm
+            lower in its crouch than in its final stand (the file's own ankle and toe joints
+            do), 8-10 cm in 131_02.
     """
 
     stance_speed: float = 0.2
     smoothing: float = 0.05
-    max_shift: float = 0.05
+    max_shift: float = 0.08
 
     def __post_init__(self) -> None:
         for name in ("stance_speed", "smoothing", "max_shift"):
@@ -400,8 +416,11 @@ def stance_floor(motion: Motion, model: mujoco.MjModel, config: StanceGrounding 
     touches the floor too); between such frames it is interpolated, and lowered wherever a foot
     would pass below it. The estimate is clamped to ``max_shift`` around the midpoint of the
     planted frames' heights (balancing floating against sinking where the source's feet vary
-    more than that), then low-passed. Without any planted frame the floor is constant, at the
-    5th percentile of the lowest foot point (as :func:`ground`).
+    more than that), then low-passed, and never rises above that clamped estimate: where the
+    low-pass would cut through a short dip of the feet, it is lowered by its low-passed excess
+    (a few passes) and then by a smooth envelope of what is left, so no foot sinks into the
+    floor within the clamp. Without any planted frame the floor is constant, at the 5th
+    percentile of the lowest foot point (as :func:`ground`).
     """
     sole = foot_sole_heights(motion, model)
     planted = planted_feet(motion, model, config.stance_speed).any(axis=1)
@@ -411,8 +430,16 @@ def stance_floor(motion: Motion, model: mujoco.MjModel, config: StanceGrounding 
     floor = np.minimum(np.interp(frames, frames[planted], sole[planted]), sole)
     mid = (sole[planted].min() + sole[planted].max()) / 2
     floor = np.clip(floor, mid - config.max_shift, mid + config.max_shift)
-    # A normalised Gaussian averages values inside the clamp, so the result stays inside it.
-    return gaussian_filter1d(floor, config.smoothing * motion.fps, mode="nearest")
+    sigma = config.smoothing * motion.fps
+    smooth = _low_pass(floor, sigma)
+    for _ in range(_UNDERCUT_PASSES):  # pull the curve under short dips, spreading them little
+        smooth -= _low_pass(np.maximum(smooth - floor, 0.0), sigma)
+    # Each frame's remaining excess is inside the reach of its neighbours' maxima, so the
+    # low-passed maxima (weights summing to one) are at least that excess: the result stays at or
+    # below ``floor``.
+    reach = int(_TRUNCATE * sigma + 0.5)  # the kernel's radius in frames, as scipy rounds it
+    excess = maximum_filter1d(np.maximum(smooth - floor, 0.0), 2 * reach + 1, mode="nearest")
+    return np.clip(smooth - _low_pass(excess, sigma), mid - config.max_shift, mid + config.max_shift)
 
 
 def ground_stance(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding(),
@@ -426,3 +453,49 @@ def ground_stance(motion: Motion, model: mujoco.MjModel, config: StanceGrounding
     offset = np.zeros((motion.num_frames, 3))
     offset[:, 2] = floor_height - floor
     return replace(motion, root_pos=motion.root_pos + offset)
+
+
+def level_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding()) -> Motion:
+    """The motion with each planted foot flat on a level floor: its sole not rolled, its toes level.
+
+    A foot planted on a flat floor has a level sole and its toes on the floor. Motion capture
+    often breaks both: a skeleton whose rest legs stand apart rolls the sole of a straight leg
+    by about that angle (CMU's by 10-20°), and toes, tracked by one marker if at all, curl
+    40° into the floor or flip by 80° within a few frames. Grounding then stands the body on a
+    foot edge or on curled toe tips, centimetres above a flat stance, and the simulated toe's
+    stiff servo fights the floor at its torque limit, where MuJoCo's implicit damping no
+    longer applies and the light toe chatters at hundreds of rad/s.
+
+    The roll (the foot turned about its length) is measured in the foot's planted frames (see
+    :class:`StanceGrounding`), interpolated between them, low-passed and turned out of every
+    frame; without a planted frame it is kept. The toes are posed from the floor alone: level
+    while the toe joint stands still (from heel strike to toe-off, bent up as the heel lifts),
+    and in the air unbending steadily from their bend at toe-off to their bend at the next
+    touchdown (a foot pitching 80° in the air does not whip them round: the light toe's servo
+    saturates above 7.5 rad/s); straight if the toe joint never stands still. Positions of every
+    joint but the toes are unchanged.
+    """
+    motion = motion.in_humanoid_order()
+    planted = planted_feet(motion, model, config.stance_speed)
+    kin = compute_kinematics(motion, model)
+    foot_axes = Rotation.from_quat(kin.body_quat.reshape(-1, 4), scalar_first=True)
+    foot_axes = foot_axes.as_matrix().reshape(motion.num_frames, len(BODY_NAMES), 3, 3)
+    sigma = config.smoothing * motion.fps
+    frames = np.arange(motion.num_frames)
+    dof = motion.dof_pos.reshape(motion.num_frames, -1, 3).copy()  # (T, 23, 3): non-root bodies
+    for side, on in zip("LR", planted.T):
+        ankle, toe = BODY_NAMES.index(f"{side}_Ankle"), BODY_NAMES.index(f"{side}_Toe")
+        axes = foot_axes[:, ankle]  # columns: the foot's length, its left, its sole normal
+        roll = np.arctan2(axes[:, 2, 1], axes[:, 2, 2])
+        roll = _low_pass(np.interp(frames, frames[on], roll[on]), sigma) if on.any() else np.zeros(motion.num_frames)
+        unroll = Rotation.from_rotvec(-roll[:, None] * [1.0, 0.0, 0.0]).as_matrix()
+        local = hinge_angles_to_rotations(dof[:, ankle - 1]) @ unroll
+        dof[:, ankle - 1] = rotations_to_hinge_angles(local[:, None])[:, 0]
+        axes = axes @ unroll
+        level = np.arctan2(axes[:, 2, 0], axes[:, 2, 2])  # toe flexion that makes the toes level
+        # The toes stay down from heel strike to toe-off, while the ankle already moves on.
+        toes_down = np.linalg.norm(kin.body_lin_vel[:, toe, :2], axis=1) < config.stance_speed
+        dof[:, toe - 1] = 0.0
+        if toes_down.any():  # in the air the bend goes steadily from toe-off to the next touchdown
+            dof[:, toe - 1, 1] = np.interp(frames, frames[toes_down], level[toes_down])
+    return replace(motion, dof_pos=dof.reshape(motion.num_frames, -1))

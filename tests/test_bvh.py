@@ -5,14 +5,18 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.bvh import JOINT_MAPS, bvh_forward_kinematics, load_bvh, parse_bvh, retarget_bvh
+from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid, default_rest_joints, joint_range_deg
 from crisp_gym.motion import (Motion, StanceGrounding, compute_kinematics, foot_sole_heights, ground_stance,
-                              stance_floor)
+                              planted_feet, stance_floor)
+from crisp_gym.scene import floor_box
 from tests.conftest import SHARED_DATA
 
 CMU_DIR = SHARED_DATA / "cmu_bvh"
@@ -467,6 +471,88 @@ def test_stance_grounding_stays_within_its_shift_limit(model):
         StanceGrounding(max_shift=0.0)
 
 
+def test_a_short_dip_of_the_planted_feet_does_not_sink_them(model):
+    """Feet that dip 1.5 cm for three frames (capture noise): the smooth floor correction passes
+    under the dip instead of averaging through it, so no planted foot ends below the floor, and
+    none floats by more than the dip."""
+    height = np.full(90, 0.95)
+    height[44:47] -= 0.015
+    sole = foot_sole_heights(ground_stance(standing_motion(height), model), model)
+    assert sole.min() >= -1e-9
+    assert sole.max() <= 0.015 + 1e-9
+
+
+def write_standing_bvh(path: Path) -> Path:
+    """Our rest proportions standing still for 3 s at 30 fps, as motion capture often gives feet:
+    the left sole rolled 15° about the foot's length, and both toes flipping between 40° curled
+    into the floor and 40° up every half second."""
+    to_file = BVH_TO_OURS.T
+    joints = cgspeed_joints(CMU_UNIT, to_file)
+    names = [j[0] for j in joints]
+    t = 90
+
+    def in_file(axis: str, degrees: float | np.ndarray) -> np.ndarray:
+        """Rotations about our ``axis`` in the file's axes."""
+        return to_file @ Rotation.from_euler(axis, degrees, degrees=True).as_matrix() @ to_file.T
+
+    rots = np.broadcast_to(np.eye(3), (t, len(names), 3, 3)).copy()
+    rots[:, names.index("LeftFoot")] = in_file("x", 15.0)
+    curl = 40.0 * np.sign(np.sin(2 * np.pi * (np.arange(t) + 0.5) / 30))  # + is toes down in our axes
+    for toe in ("LeftToeBase", "RightToeBase"):
+        rots[:, names.index(toe)] = in_file("y", curl[:, None])
+    root = np.tile(default_rest_joints(1.70)[0], (t, 1))
+    return write_bvh(path, joints, rots, root @ to_file.T / CMU_UNIT)
+
+
+def foot_geom_bottoms(motion: Motion, model) -> np.ndarray:
+    """(T, G) lowest corner height of each foot box of the model."""
+    data = mujoco.MjData(model)
+    feet = {model.body(b).id for b in ("L_Ankle", "L_Toe", "R_Ankle", "R_Toe")}
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in feet]
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    out = np.empty((motion.num_frames, len(geoms)))
+    for k, qpos in enumerate(motion.qpos()):
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        for i, g in enumerate(geoms):
+            points = data.geom_xpos[g] + (corners * model.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
+            out[k, i] = points[:, 2].min()
+    return out
+
+
+def test_standing_feet_are_put_flat_on_the_floor(tmp_path, model):
+    """A still stance with a rolled sole and curled, flipping toes: every foot box of the model
+    rests on the floor in every frame, so the lowest joint is where the model's own standing feet
+    put it (the toe joint of the rest pose, feet on z = 0), and the toes hold still."""
+    motion = retarget_bvh(parse_bvh(write_standing_bvh(tmp_path / "stand.bvh")), model=model).motion
+    bottoms = foot_geom_bottoms(motion, model)
+    assert bottoms.min() >= -1e-6 and bottoms.max() <= 1e-3
+    standing = default_rest_joints(1.70)[:, 2].min()  # 2.2 cm: joints sit above the sole
+    lowest = compute_kinematics(motion, model).body_pos[:, :, 2].min(axis=1)
+    np.testing.assert_allclose(lowest, standing, atol=1e-3)
+    toes = [DOF_NAMES.index(f"{s}_Toe_{a}") for s in "LR" for a in "xyz"]
+    assert np.abs(motion.qvel()[:, 6:][:, toes]).max() < 0.1
+
+
+def test_a_standing_reference_is_held_without_chatter(tmp_path, model):
+    """The PD servos at the reference (zero action) hold the still stance from reference state
+    inits with almost no power. Toes curled into the floor and flipping against it saturate
+    their servo, where MuJoCo drops the implicit damping and the light toe chatters at hundreds
+    of rad/s: the energy term then reaches -100 per step and more."""
+    motion = retarget_bvh(parse_bvh(write_standing_bvh(tmp_path / "stand.bvh")), model=model).motion
+    clip = write_clip(tmp_path / "clip", [floor_box()], motion, {"source": "test"})
+    env = gym.make("CrispTrack-v0", clip=str(clip))
+    energy = []
+    for start in range(0, 80, 10):
+        env.reset(seed=0, options={"start_frame": start})
+        for _ in range(8):
+            _, _, terminated, truncated, info = env.step(np.zeros(env.action_space.shape))
+            energy.append(info["reward_terms"]["energy"])
+            assert not terminated
+    env.close()
+    assert min(energy) > -0.5
+
+
 def test_without_planted_feet_grounding_is_one_offset(tmp_path, model):
     """A motion whose feet never stay still gets the constant grounding, like ``grounding=None``."""
     joints = cgspeed_joints(CMU_UNIT, BVH_TO_OURS.T)
@@ -512,8 +598,9 @@ def _raw_hip_trajectory(path: Path) -> np.ndarray:
 
 
 def test_cmu_clip_root_follows_the_hips(cmu_clip):
-    """The root path is the file's hip path in metres, z up, within 5 cm. The file's floor level
-    is its own (and our legs are longer), so heights are compared up to one constant."""
+    """The root path is the file's hip path in metres, z up, within the grounding's ``max_shift``.
+    The file's floor level is its own (and our legs are longer), so heights are compared up to one
+    constant."""
     path, _, result = cmu_clip
     assert result.unit_scale == pytest.approx(CMU_UNIT)
     hips = _raw_hip_trajectory(path) * CMU_UNIT  # y-up, facing +z, left +x
@@ -523,24 +610,36 @@ def test_cmu_clip_root_follows_the_hips(cmu_clip):
     np.testing.assert_allclose(vertical, result.ground_offset, atol=1e-9)
     level = (vertical.max() + vertical.min()) / 2  # the constant that fits best
     assert abs(level) < 0.2  # the capture's floor is near the file's y = 0
-    assert np.linalg.norm(root - expected - [0.0, 0.0, level], axis=1).max() <= 0.05 + 1e-9
+    assert np.linalg.norm(root - expected - [0.0, 0.0, level], axis=1).max() <= StanceGrounding().max_shift + 1e-9
 
 
 def test_cmu_clip_feet_touch_the_floor_in_stance(cmu_clip, model):
-    """In every stance frame the lowest foot point is within 3 cm of the floor; no frame sinks
-    far into it; and the height correction adds no jitter to the root."""
+    """In stance frames the lowest foot point never sinks into the floor, is within 1 cm of it in
+    85 % of them, 2 cm in 95 % and 3 cm in all; the planted soles are level (no rolled foot standing on
+    its edge: the file's own soles roll by 10-20°); and the height correction adds no jitter to
+    the root."""
     path, clip, result = cmu_clip
     motion = result.motion
     sole = foot_sole_heights(motion, model)
     stance = stance_frames(motion, model)
     assert stance.mean() > 0.5  # start, walk or hop, stop: mostly on the ground
-    assert np.abs(sole[stance]).max() < 0.03
+    assert sole[stance].min() >= -1e-6 and sole[stance].max() < 0.03
+    assert np.mean(sole[stance] < 0.01) > 0.85 and np.mean(sole[stance] < 0.02) > 0.95
     assert sole.min() > -0.03 and np.mean(sole < -0.01) < 0.03
-    # Jitter: the correction is a low-passed curve, far gentler than the hips' own vertical motion.
+    kin = compute_kinematics(motion, model)
+    for side, planted in zip("LR", planted_feet(motion, model).T):
+        normal = Rotation.from_quat(kin.body_quat[planted, BODY_NAMES.index(f"{side}_Ankle")],
+                                    scalar_first=True).apply([0.0, 1.0, 0.0])
+        tilt = np.abs(np.rad2deg(np.arcsin(normal[:, 2])))  # the sole's left-right tilt
+        assert np.percentile(tilt, 95) < 2.5  # brief stances within a few frames are smoothed over
+    # Jitter: the correction is a low-passed curve, gentler than the hips' own vertical motion. It
+    # follows whichever planted foot is lower and passes under short dips of the feet, and with our
+    # legs CMU's left and right stance heights differ by up to 4 cm, so it moves at up to half the
+    # hips' peak acceleration; the root's own peak acceleration stays that of the hips.
     dt = 1.0 / motion.fps
     accel = lambda z: np.abs(np.diff(z, 2)).max() / dt**2  # noqa: E731
     hips_z = clip.root_positions[:, 1] * result.unit_scale
-    assert accel(result.ground_offset) < 0.25 * accel(hips_z)
+    assert accel(result.ground_offset) < 0.6 * accel(hips_z)
     assert accel(motion.root_pos[:, 2]) < 1.1 * accel(hips_z)
 
 

@@ -4,7 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.motion import (Motion, compute_kinematics, foot_sole_heights, ground, hinge_angles_to_rotations,
-                              rotations_to_hinge_angles)
+                              level_feet, planted_feet, rotations_to_hinge_angles)
 from tests.conftest import sway_motion
 
 
@@ -100,3 +100,44 @@ def test_ground_puts_the_lowest_foot_on_the_floor():
     soles = foot_sole_heights(grounded, model)
     assert np.percentile(soles, 5) == pytest.approx(0.1, abs=1e-9)
     np.testing.assert_allclose(grounded.root_pos[:, :2], motion.root_pos[:, :2])
+
+
+def _body_axes(motion: Motion, model, body: str) -> np.ndarray:
+    """(T, 3, 3) world rotation of ``body``; its columns are the body's x, y, z axes."""
+    quat = compute_kinematics(motion, model).body_quat[:, BODY_NAMES.index(body)]
+    return Rotation.from_quat(quat, scalar_first=True).as_matrix()
+
+
+def test_level_feet_flattens_planted_feet_only():
+    """Standing still on a left sole rolled 15° (turned out 20°) with toes curled 40°, while the
+    right leg swings fast with its sole rolled 10°: the planted left foot comes out level across,
+    still turned out, and its toes level; the swinging foot keeps its roll and gets straight toes.
+    No joint but the toes moves."""
+    model = build_humanoid()
+    frames = 60
+    t = np.arange(frames) / 30.0
+    dof = np.zeros((frames, len(DOF_NAMES)))
+    col = {name: DOF_NAMES.index(name) for name in DOF_NAMES}
+    dof[:, col["L_Ankle_x"]] = np.radians(15.0)
+    dof[:, col["L_Hip_z"]] = np.radians(20.0)  # the leg turned out
+    dof[:, [col["L_Toe_y"], col["R_Toe_y"]]] = np.radians(40.0)
+    dof[:, col["R_Hip_x"]] = -0.5 * np.cos(2 * np.pi * t)  # the leg circles: the foot never stops
+    dof[:, col["R_Hip_y"]] = 0.5 * np.sin(2 * np.pi * t)
+    dof[:, col["R_Ankle_x"]] = np.radians(-10.0)
+    motion = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 1.0], (frames, 1)),
+                    root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)
+    assert planted_feet(motion, model)[:, 0].all() and not planted_feet(motion, model)[:, 1].any()
+    level = level_feet(motion, model)
+
+    foot = _body_axes(level, model, "L_Ankle")
+    np.testing.assert_allclose(foot[:, 2], [[0.0, 0.0, 1.0]] * frames, atol=1e-9)  # sole normal up
+    heading = np.degrees(np.arctan2(foot[:, 1, 0], foot[:, 0, 0]))
+    np.testing.assert_allclose(heading, 20.0, atol=1e-6)  # turned out as before
+    np.testing.assert_allclose(_body_axes(level, model, "L_Toe")[:, 2], [[0.0, 0.0, 1.0]] * frames, atol=1e-9)
+
+    np.testing.assert_allclose(_body_axes(level, model, "R_Ankle"), _body_axes(motion, model, "R_Ankle"), atol=1e-9)
+    np.testing.assert_allclose(level.dof_pos[:, [col["R_Toe_x"], col["R_Toe_y"], col["R_Toe_z"]]], 0.0, atol=1e-9)
+
+    moved = compute_kinematics(level, model).body_pos - compute_kinematics(motion, model).body_pos
+    toes = [BODY_NAMES.index("L_Toe"), BODY_NAMES.index("R_Toe")]
+    np.testing.assert_allclose(np.delete(moved, toes, axis=1), 0.0, atol=1e-12)
