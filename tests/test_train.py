@@ -488,3 +488,15 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
     assert process.returncode == 130, stderr.decode()[-2000:]
     rows = list(csv.DictReader(open(out / "progress.csv")))
     assert load_checkpoint(out)["iteration"] == int(rows[-1]["iteration"]) >= 3
+
+
+def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path, tmp_path: Path) -> None:
+    from train.ppo import load_checkpoint, train
+
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, start_sampling="adaptive")
+    train(cfg)
+    saved = load_checkpoint(tmp_path)["start_failures"]
+    assert sum(float(f.sum()) for f in saved) > 0  # the untrained policy fails somewhere
+    train(replace(cfg, resume=True))  # nothing left to train: the restored counts are saved again
+    for before, after in zip(saved, load_checkpoint(tmp_path)["start_failures"]):
+        torch.testing.assert_close(after, before, rtol=0, atol=0)

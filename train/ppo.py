@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import torch
 import tyro
 from tensordict import TensorDictBase
@@ -358,8 +359,13 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
 
 
 def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optimizer, iteration: int,
-                    frames: int, cfg: TrainConfig, generator: torch.Generator) -> Path:
-    """Write a checkpoint atomically (a temporary file, synced, then renamed over ``path``)."""
+                    frames: int, cfg: TrainConfig, generator: torch.Generator,
+                    start_failures: list[np.ndarray] | None = None) -> Path:
+    """Write a checkpoint atomically (a temporary file, synced, then renamed over ``path``).
+
+    ``start_failures``: the adaptive start sampler's failure counts per clip, so a resumed run
+    starts where the interrupted one was failing.
+    """
     path = Path(path)
     state = {
         "format_version": CHECKPOINT_FORMAT,
@@ -372,6 +378,8 @@ def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optim
         "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(),
     }
+    if start_failures is not None:
+        state["start_failures"] = [torch.from_numpy(np.asarray(f, dtype=np.float64)) for f in start_failures]
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)
         f.flush()
@@ -753,6 +761,11 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                           env_device="cpu", policy_device=device, storing_device=device,
                           auto_register_policy_transforms=False)
     clip_names = env.vec_env.task.clip_names
+    sampler = env.vec_env.start_sampler
+    if saved is not None and "start_failures" in saved:
+        restored = [f.numpy().copy() for f in saved["start_failures"]]
+        if [f.shape for f in restored] == [f.shape for f in sampler.failures]:
+            sampler.failures = restored
     evaluation = None
     if cfg.eval_every:
         from train.evaluate import LibraryEvaluation, torch_policy
@@ -808,7 +821,6 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             row = {"iteration": iteration, "frames": frames, "time_s": time.perf_counter() - start_time,
                    "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
                    "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
-            sampler = env.vec_env.start_sampler
             row.update({f"start_failures/{name}": float(mass)
                         for name, mass in zip(clip_names, sampler.stats()["failure_mass"])})
             reached = False
@@ -828,7 +840,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                             len=f"{last_episodes.get('mean_length', math.nan):.0f}",
                             succ=f"{last_episodes.get('success_rate', math.nan):.2f}", refresh=False)
             if iteration % cfg.checkpoint_every == 0:
-                save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator)
+                save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator,
+                                sampler.failures)
             if reached:
                 bar.write(f"every clip reached {cfg.until_success:.0%} success from RSI starts and the whole clip "
                           f"from frame 0: stopping at {frames} frames")
@@ -845,7 +858,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         if evaluation is not None:
             evaluation.close()
     # Only reached on completion or Ctrl-C: an error keeps the last periodic checkpoint.
-    save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator)
+    save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator,
+                    env.vec_env.start_sampler.failures)
     return TrainResult(iteration, frames, history, checkpoint_path, interrupted, stopped_early)
 
 
