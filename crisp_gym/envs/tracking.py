@@ -25,7 +25,7 @@ key                    content                                                  
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import mujoco
@@ -79,6 +79,12 @@ class Reference:
     body_quat: np.ndarray  # (T, 24, 4)
     body_lin_vel: np.ndarray  # (T, 24, 3)
     body_ang_vel: np.ndarray  # (T, 24, 3)
+    # (T, 24, 6) each body's rotated x and z axes (quat.tangent_normal of body_quat): the targets
+    # read them every step, so they are computed once
+    body_axes: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "body_axes", quat.tangent_normal(self.body_quat))
 
     @property
     def num_frames(self) -> int:
@@ -107,7 +113,7 @@ class Reference:
     @classmethod
     def concatenate(cls, references: Sequence[Reference]) -> Reference:
         """``references`` end to end (frame rows stacked)."""
-        return cls(**{f.name: np.concatenate([getattr(r, f.name) for r in references]) for f in fields(cls)})
+        return cls(**{f.name: np.concatenate([getattr(r, f.name) for r in references]) for f in fields(cls) if f.init})
 
 
 @dataclass(frozen=True)
@@ -129,10 +135,14 @@ def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, body_i
     ``cvel`` is the spatial velocity (angular, linear) at the root's subtree centre of mass,
     so a body origin moves with ``v + ω × (x_body − c)``.
     """
-    com = subtree_com[:, body_ids[:1]]
-    ang = cvel[:, body_ids, :3]
-    lin = cvel[:, body_ids, 3:] + quat.cross(ang, xpos[:, body_ids] - com)
-    return SimState(qpos=qpos, qvel=qvel, body_pos=xpos[:, body_ids], body_quat=xquat[:, body_ids],
+    pos = np.take(xpos, body_ids, axis=1)  # np.take: a copy, as fancy indexing, at half its cost
+    vel = np.take(cvel, body_ids, axis=1)
+    ang = vel[..., :3]  # a view of this private copy
+    # the root's subtree centre of mass, repeated per body: subtracting equal shapes runs over
+    # whole rows, where broadcasting a (N, 1, 3) runs an inner loop of 3 per body
+    lin = quat.cross(ang, pos - np.take(subtree_com, np.repeat(body_ids[:1], len(body_ids)), axis=1))
+    lin += vel[..., 3:]
+    return SimState(qpos=qpos, qvel=qvel, body_pos=pos, body_quat=np.take(xquat, body_ids, axis=1),
                     body_lin_vel=lin, body_ang_vel=ang, actuator_force=actuator_force)
 
 
@@ -143,30 +153,50 @@ def _heading_inverse(root_quat: np.ndarray) -> np.ndarray:
 
 def proprioception(state: SimState) -> np.ndarray:
     """(N, 361) the paper's s_t in the heading frame."""
-    root_pos = state.body_pos[:, :1]
-    inv = _heading_inverse(state.body_quat[:, 0])
-    n = state.qpos.shape[0]
-    rel_pos = quat.rotate(inv, state.body_pos - root_pos)
-    rot = quat.tangent_normal(quat.multiply(np.broadcast_to(inv, state.body_quat.shape), state.body_quat))
-    lin = quat.rotate(inv, state.body_lin_vel)
-    ang = quat.rotate(inv, state.body_ang_vel)
-    return np.concatenate([root_pos[:, 0, 2:3], rel_pos.reshape(n, -1), rot.reshape(n, -1),
-                           lin.reshape(n, -1), ang.reshape(n, -1)], axis=1)
+    # Every block but the root height is a list of 3-vectors turned into the heading frame:
+    # gather them as rows and rotate them all with one matrix product per env.
+    pos = state.body_pos
+    n, nb = pos.shape[:2]
+    rows = np.empty((n, 5 * nb, 3))  # body − root positions, x and z axes (per body), lin, ang
+    np.subtract(pos, np.take(pos, np.zeros(nb, dtype=int), axis=1), out=rows[:, :nb])  # (see sim_state)
+    axes = quat.tangent_normal(state.body_quat, out=rows[:, nb:3 * nb].reshape(n, nb, 6))
+    rows[:, 3 * nb:4 * nb] = state.body_lin_vel
+    rows[:, 4 * nb:] = state.body_ang_vel
+    # the heading is the yaw of the root's x axis (quat.yaw's arguments, bit for bit)
+    heading = quat.inverse_yaw_matrix(np.arctan2(axes[:, 0, 1], axes[:, 0, 0]))
+    out = np.empty((n, 1 + 15 * nb))
+    out[:, 0] = pos[:, 0, 2]
+    np.matmul(rows, heading, out=out[:, 1:].reshape(n, 5 * nb, 3))  # a view of out after the height
+    return out
 
 
 def target_features(state: SimState, ref: Reference, frames: np.ndarray) -> np.ndarray:
     """(N, K, 432) the paper's f̂ for reference frames ``frames`` (N, K)."""
+    # Per body and frame the 18 features are six 3-vectors: the reference x and z axes in the
+    # sim body's frame (rel_rot), the same axes in the heading frame (ref_rot), and
+    # reference − sim body and reference − sim root in the heading frame (diff_pos, rel_pos).
+    # Each block is a matrix product written straight into its columns of the output.
     n, k = frames.shape
-    inv = _heading_inverse(state.body_quat[:, 0])[:, None]  # (N, 1, 1, 4)
-    ref_quat = ref.body_quat[frames]  # (N, K, 24, 4)
-    ref_pos = ref.body_pos[frames]
-    sim_quat = state.body_quat[:, None]
-    sim_pos = state.body_pos[:, None]
-    rel_rot = quat.tangent_normal(quat.multiply(quat.conjugate(sim_quat), ref_quat))
-    ref_rot = quat.tangent_normal(quat.multiply(np.broadcast_to(inv, ref_quat.shape), ref_quat))
-    diff_pos = quat.rotate(inv, ref_pos - sim_pos)
-    rel_pos = quat.rotate(inv, ref_pos - sim_pos[:, :, :1])
-    return np.concatenate([rel_rot, ref_rot, diff_pos, rel_pos], axis=-1).reshape(n, k, -1)
+    sim_pos = state.body_pos
+    nb = sim_pos.shape[1]
+    rows = k * nb
+    out = np.empty((n, k, nb, 18))
+    sim_rot = quat.matrix_pair(state.body_quat)  # (N, B, 6, 6) blockdiag(R, R)
+    heading = quat.inverse_yaw_matrix(np.arctan2(sim_rot[:, 0, 1, 0], sim_rot[:, 0, 0, 0]))  # root's yaw
+    ref_axes = ref.body_axes[frames]  # (N, K, B, 6)
+    # rel_rot: [x, z] @ blockdiag(R, R) = [Rᵀx, Rᵀz], one product per (env, body) over the K frames
+    np.matmul(ref_axes.transpose(0, 2, 1, 3), sim_rot, out=out[..., :6].transpose(0, 2, 1, 3))
+    # ref_rot: both axes into the heading frame, one product per env
+    heading_pair = np.zeros((n, 6, 6))
+    heading_pair[:, :3, :3] = heading_pair[:, 3:, 3:] = heading
+    np.matmul(ref_axes.reshape(n, rows, 6), heading_pair, out=out[..., 6:12].reshape(n, rows, 6))
+    # diff_pos and rel_pos: subtract over whole (B·3) rows, then one product per env
+    ref_pos = ref.body_pos[frames].reshape(n, k, nb * 3)
+    diff = ref_pos - sim_pos.reshape(n, 1, nb * 3)
+    np.matmul(diff.reshape(n, rows, 3), heading, out=out[..., 12:15].reshape(n, rows, 3))
+    ref_pos -= np.take(sim_pos, np.zeros(nb, dtype=int), axis=1).reshape(n, 1, nb * 3)
+    np.matmul(ref_pos.reshape(n, rows, 3), heading, out=out[..., 15:18].reshape(n, rows, 3))
+    return out.reshape(n, k, nb * 18)
 
 
 def future_frames(frame: np.ndarray, num_future: int, last_frame: int | np.ndarray) -> np.ndarray:
@@ -192,25 +222,40 @@ def nearest_points(root_pos: np.ndarray, root_quat: np.ndarray, tree: cKDTree, c
 
 def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackConfig) -> dict[str, np.ndarray]:
     """The paper's six reward terms, each (N,) and already weighted; the reward is their sum."""
-    pos_err = np.linalg.norm(ref.body_pos[frame] - state.body_pos, axis=-1).sum(-1)
-    rot_err = quat.angle(quat.multiply(ref.body_quat[frame], quat.conjugate(state.body_quat))).sum(-1)
-    vel_err = np.linalg.norm(ref.body_lin_vel[frame] - state.body_lin_vel, axis=-1).sum(-1)
-    ang_err = np.linalg.norm(ref.body_ang_vel[frame] - state.body_ang_vel, axis=-1).sum(-1)
-    height_err = np.abs(ref.body_pos[frame, 0, 2] - state.body_pos[:, 0, 2])
+    n, nb = state.body_pos.shape[:2]
+    err = np.empty((5, n))  # pos, vel, ang_vel, rot, height
+    # per-body Euclidean errors of position, linear and angular velocity, summed over bodies
+    sq = np.empty((3, n, nb, 3))
+    np.subtract(ref.body_pos[frame], state.body_pos, out=sq[0])
+    np.subtract(ref.body_lin_vel[frame], state.body_lin_vel, out=sq[1])
+    np.subtract(ref.body_ang_vel[frame], state.body_ang_vel, out=sq[2])
+    sq *= sq
+    dist = sq[..., 0] + sq[..., 1]  # summed over xyz as np.linalg.norm does
+    dist += sq[..., 2]
+    np.sqrt(dist, out=dist).sum(-1, out=err[:3])
+    # rotation: the angle of ref ⊗ sim⁻¹, whose scalar part is the 4-D dot product, summed in
+    # the Hamilton product's order (arccos near 1 magnifies any rounding difference)
+    prod = ref.body_quat[frame] * state.body_quat
+    cos_half = prod[..., 0] + prod[..., 1]
+    cos_half += prod[..., 2]
+    cos_half += prod[..., 3]
+    quat.angle(cos_half[..., None]).sum(-1, out=err[3])
+    np.abs(ref.body_pos[frame, 0, 2] - state.body_pos[:, 0, 2], out=err[4])
+    err *= [[-cfg.a_pos], [-cfg.a_vel], [-cfg.a_ang_vel], [-cfg.a_rot], [-cfg.a_height]]
+    terms = np.exp(err, out=err)
+    terms *= [[cfg.w_pos], [cfg.w_vel], [cfg.w_ang_vel], [cfg.w_rot], [cfg.w_height]]
     power = np.abs(state.actuator_force * state.qvel[:, 6:]).sum(-1)
-    return {
-        "pos": cfg.w_pos * np.exp(-cfg.a_pos * pos_err),
-        "rot": cfg.w_rot * np.exp(-cfg.a_rot * rot_err),
-        "vel": cfg.w_vel * np.exp(-cfg.a_vel * vel_err),
-        "ang_vel": cfg.w_ang_vel * np.exp(-cfg.a_ang_vel * ang_err),
-        "height": cfg.w_height * np.exp(-cfg.a_height * height_err),
-        "energy": -cfg.w_energy * power,
-    }
+    return {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
+            "energy": -cfg.w_energy * power}
 
 
 def max_body_error(state: SimState, ref: Reference, frame: np.ndarray) -> np.ndarray:
     """(N,) largest distance (m) of any body from its reference."""
-    return np.linalg.norm(ref.body_pos[frame] - state.body_pos, axis=-1).max(-1)
+    diff = ref.body_pos[frame] - state.body_pos
+    diff *= diff
+    dist = diff[..., 0] + diff[..., 1]  # squared, summed as np.linalg.norm does
+    dist += diff[..., 2]
+    return np.sqrt(dist.max(-1))
 
 
 def hinge_ranges() -> np.ndarray:
