@@ -438,9 +438,9 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
     from train import evaluate
     from train.ppo import train
 
-    script = iter([{"success": 0.95, "frames": 40, "whole_clip": False},  # frame 0 fails: go on
-                   {"success": 0.85, "frames": 89, "whole_clip": True},   # below the threshold: go on
-                   {"success": 0.90, "frames": 89, "whole_clip": True}])  # met
+    script = iter([{"success": 0.95, "frames": 40, "num_frames": 90, "whole_clip": False},  # frame 0 fails
+                   {"success": 0.85, "frames": 89, "num_frames": 90, "whole_clip": True},   # below the threshold
+                   {"success": 0.90, "frames": 89, "num_frames": 90, "whole_clip": True}])  # met
 
     def scripted(self, policy):
         return {name: next(script) for name in self.names}
@@ -500,3 +500,26 @@ def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path,
     train(replace(cfg, resume=True))  # nothing left to train: the restored counts are saved again
     for before, after in zip(saved, load_checkpoint(tmp_path)["start_failures"]):
         torch.testing.assert_close(after, before, rtol=0, atol=0)
+
+
+def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, monkeypatch) -> None:
+    """``best.pt`` holds the weights of the best evaluation (RSI success + share tracked from
+    frame 0), not the last one; a resumed run only replaces it with a better one."""
+    from train import evaluate
+    from train.ppo import load_checkpoint, train
+
+    scores = iter([(0.5, 20), (0.9, 89), (0.2, 10), (0.8, 80), (0.95, 89)])
+
+    def scripted(self, policy):
+        success, frames = next(scores)
+        return {name: {"success": success, "frames": frames, "num_frames": 90, "whole_clip": frames == 89}
+                for name in self.names}
+    monkeypatch.setattr(evaluate.LibraryEvaluation, "__call__", scripted)
+    cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=3 * 128, eval_every=1, eval_episodes=2)
+    train(cfg)
+    best = load_checkpoint(tmp_path / "best.pt")
+    assert best["iteration"] == 2 and best["evaluation_score"] == pytest.approx(0.9 + 89 / 90)
+    train(replace(cfg, frames=4 * 128, resume=True))  # (0.8, 80) is worse: kept
+    assert load_checkpoint(tmp_path / "best.pt")["iteration"] == 2
+    train(replace(cfg, frames=5 * 128, resume=True))  # (0.95, 89) is better: replaced
+    assert load_checkpoint(tmp_path / "best.pt")["iteration"] == 5

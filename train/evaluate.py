@@ -247,8 +247,9 @@ class LibraryEvaluation:
 
     Per clip: ``episodes`` RSI starts drawn once (uniform reference state init, seeded) plus
     one episode from frame 0, all in one batched env. Calling it with a policy returns, per
-    clip name, ``success`` (share of the RSI episodes that reached the clip's end) and
-    ``frames`` (frames tracked from frame 0; the whole clip is ``num_frames - 1``).
+    clip name, ``success`` (share of the RSI episodes that reached the clip's end), ``frames``
+    (frames tracked from frame 0), ``num_frames`` (the clip's; the whole clip is
+    ``num_frames - 1`` steps) and ``whole_clip``.
     """
 
     def __init__(self, clip: Any, episodes: int, *, scene_aware: bool = False, seed: int = 0,
@@ -281,6 +282,7 @@ class LibraryEvaluation:
             whole = (self.clips == c) & self.first_frame
             out[name] = {"success": float(result.success[rsi].mean()),
                          "frames": int(result.lengths[whole][0]),
+                         "num_frames": int(self.num_frames[c]),
                          "whole_clip": bool(result.success[whole][0])}
         return out
 

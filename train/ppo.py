@@ -52,6 +52,7 @@ from crisp_gym.atomic import atomic_path, write_text
 from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
+BEST_NAME = "best.pt"  # the checkpoint of the best periodic evaluation so far
 CHECKPOINT_FORMAT = 1
 POLICY_NAME = "policy.pt"
 POLICY_FORMAT = 1
@@ -360,11 +361,12 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
 
 def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optimizer, iteration: int,
                     frames: int, cfg: TrainConfig, generator: torch.Generator,
-                    start_failures: list[np.ndarray] | None = None) -> Path:
+                    start_failures: list[np.ndarray] | None = None, evaluation_score: float | None = None) -> Path:
     """Write a checkpoint atomically (a temporary file, synced, then renamed over ``path``).
 
     ``start_failures``: the adaptive start sampler's failure counts per clip, so a resumed run
-    starts where the interrupted one was failing.
+    starts where the interrupted one was failing. ``evaluation_score``: the
+    :func:`evaluation_score` of the weights, for the best-evaluated checkpoint.
     """
     path = Path(path)
     state = {
@@ -378,6 +380,8 @@ def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optim
         "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(),
     }
+    if evaluation_score is not None:
+        state["evaluation_score"] = float(evaluation_score)
     if start_failures is not None:
         state["start_failures"] = [torch.from_numpy(np.asarray(f, dtype=np.float64)) for f in start_failures]
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -586,6 +590,17 @@ def _clip_fields(clip_names: list[str], cfg: TrainConfig) -> tuple[str, ...]:
     return tuple(fields)
 
 
+def evaluation_score(results: dict[str, dict[str, float]]) -> float:
+    """How good a periodic evaluation is, to keep the best weights: the mean over clips of the RSI
+    success plus the share of the clip tracked from frame 0 (each in [0, 1])."""
+    return float(sum(r["success"] + r["frames"] / r["num_frames"] for r in results.values()) / len(results))
+
+
+def evaluation_score_of(checkpoint: dict[str, Any]) -> float:
+    """:func:`evaluation_score` of the evaluation a checkpoint was saved at (from its run's log)."""
+    return float(checkpoint.get("evaluation_score", -math.inf))
+
+
 def _evaluation_row(results: dict[str, dict[str, float]]) -> dict[str, float]:
     row = {}
     for name, r in results.items():
@@ -762,6 +777,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                           auto_register_policy_transforms=False)
     clip_names = env.vec_env.task.clip_names
     sampler = env.vec_env.start_sampler
+    best_score = evaluation_score_of(load_checkpoint(out / BEST_NAME)) if (out / BEST_NAME).is_file() else -math.inf
     if saved is not None and "start_failures" in saved:
         restored = [f.numpy().copy() for f in saved["start_failures"]]
         if [f.shape for f in restored] == [f.shape for f in sampler.failures]:
@@ -829,6 +845,11 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 row.update(_evaluation_row(results))
                 reached = cfg.until_success is not None and all(
                     r["success"] >= cfg.until_success and r["whole_clip"] for r in results.values())
+                score = evaluation_score(results)
+                if score > best_score:  # evaluations swing by tens of points: keep the best weights
+                    best_score = score
+                    save_checkpoint(out / BEST_NAME, agent, optimizer, iteration, frames, cfg, generator,
+                                    sampler.failures, evaluation_score=score)
             history.append(row)
             logger.log(row)
             if evaluation is not None and iteration % cfg.eval_every == 0:

@@ -36,6 +36,8 @@ class ShipArgs:
         clip: clip names recorded in the policy and evaluated (default: the run's clips; give
             them when the run names machine-specific directories).
         output: directory to write into (e.g. ``assets/policies/NAME``).
+        best: ship the weights of the run's best periodic evaluation (``best.pt``) instead of
+            its last checkpoint.
         with_critic: keep the critic in ``policy.pt`` (a milestone that ``crisp train
             --init-from`` continues with both networks warm).
         episodes: RSI episodes of the evaluation.
@@ -45,6 +47,7 @@ class ShipArgs:
     run: tyro.conf.Positional[Path]
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))]
     clip: tuple[str, ...] | None = None
+    best: bool = False
     with_critic: bool = False
     episodes: int = 100
     smooth: int = 50
@@ -113,11 +116,12 @@ def ship(args: ShipArgs) -> dict:
     import shutil
 
     from train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
-    from train.ppo import export_policy, load_policy, policy_training_stats
+    from train.ppo import BEST_NAME, export_policy, load_policy, policy_training_stats
 
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)
-    policy = export_policy(args.run, args.output, clip=args.clip, with_critic=args.with_critic)
+    source = Path(args.run) / BEST_NAME if args.best else Path(args.run)
+    policy = export_policy(source, args.output, clip=args.clip, with_critic=args.with_critic)
     write_progress(progress, args.output / "progress.csv")
     actor, cfg = load_policy(policy)
     clips = policy_clips(cfg.clip)
