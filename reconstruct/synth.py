@@ -86,6 +86,9 @@ _SIDE = np.array([1.0, -1.0])  # lateral sign of the left and right foot (left i
 _STANCE_BODIES = (("L_Ankle", "L_Toe"), ("R_Ankle", "R_Toe"))
 _SEAT_BODIES = ("Pelvis", "L_Hip", "R_Hip")
 _SEAT_CONTACT_TOLERANCE = 0.005  # m: a thigh this close to the seat counts as resting on it
+_SEAT_OFF_SHARE = 0.45  # of the rise: lean and slide forward first, then leave the seat
+_RISE_COM_MARGIN = 0.03  # m: centre of mass in front of the heels when the pelvis leaves the seat
+_SEAT_EDGE_CLEARANCE = 0.03  # m: the sliding pelvis stays this far behind the seat's front
 _SUPPORT_TOLERANCE = 0.005  # m: a stance foot body whose sole is this close to a box top is on it
 
 
@@ -914,7 +917,7 @@ def _seat_model(seat: SeatParams, stature: float) -> tuple[mujoco.MjModel, int]:
 
 
 def _standing_frames(pelvis_s: np.ndarray, pelvis_z: np.ndarray, pitch: np.ndarray, feet_s: float,
-                     gait: GaitParams, skel: _Skeleton) -> _Frames:
+                     gait: GaitParams, skel: _Skeleton, spine: float = 0.0, arms: float = 0.0) -> _Frames:
     """Frames with both feet planted at ``feet_s`` on the floor of a straight path."""
     n = len(pelvis_s)
     zeros = np.zeros(n)
@@ -923,7 +926,7 @@ def _standing_frames(pelvis_s: np.ndarray, pelvis_z: np.ndarray, pitch: np.ndarr
     ankle[..., 1] = _SIDE * gait.step_width / 2
     ankle[..., 2] = skel.ankle_height
     return _Frames(pelvis_xy=np.stack([pelvis_s, zeros], axis=1), pelvis_z=pelvis_z, yaw=zeros, pitch=pitch,
-                   roll=zeros, spine=zeros, arms=zeros, ankle=ankle,
+                   roll=zeros, spine=np.full(n, spine), arms=np.full(n, arms), ankle=ankle,
                    foot_yaw=np.tile(_SIDE * gait.toe_out, (n, 1)), foot_pitch=np.zeros((n, 2)),
                    foot_s=np.full((n, 2), feet_s),
                    pelvis_s=pelvis_s, stance=np.ones((n, 2), dtype=bool), phase=np.zeros((n, 2)))
@@ -941,7 +944,7 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     seated_pitch = -0.2
     z_seat = _seated_height(seat, 0.0, seated_s, seated_pitch, gait, skel)
     down, hold, up = rng.uniform(1.4, 1.8), rng.uniform(1.2, 1.8), rng.uniform(1.4, 1.8)
-    lean_down, lean_up = rng.uniform(0.6, 0.75), rng.uniform(0.75, 0.9)
+    lean_down, lean_up = rng.uniform(0.6, 0.75), rng.uniform(1.05, 1.2)
     t1 = 0.6
     t2, t3 = t1 + down, t1 + down + hold
     t4 = t3 + up
@@ -954,14 +957,46 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     plan.key("z", t1 + 0.55 * down, 0.5 * (stand + z_seat) + 0.05)
     plan.pose(t2, seated_s, 0.0, z_seat, pitch=seated_pitch)
     plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch)
-    # Up: lean forward first with the thighs still loaded, then rise while moving forward.
-    plan.key("spine", t3 + 0.35 * up, lean_up)
-    plan.key("arms", t3 + 0.35 * up, 0.6 * lean_up)
-    plan.key("pitch", t3 + 0.35 * up, seated_pitch)
-    plan.key("z", t3 + 0.3 * up, z_seat)
-    plan.key("s", t3 + 0.2 * up, seated_s)
+    # Up: with the thighs still loaded, lean forward and slide to the seat's front until the
+    # centre of mass is over the feet, then rise while moving forward. Rising with the centre of
+    # mass behind the heels (9-10 cm in the first generator) has no static solution: a body
+    # tracking it falls back onto the seat.
+    seat_off = t3 + _SEAT_OFF_SHARE * up
+    slide_s, z_slide = _rising_position(seat, seated_s, seated_pitch, lean_up, gait, skel)
+    plan.key("spine", seat_off, lean_up)
+    plan.key("arms", seat_off, 0.6 * lean_up)
+    plan.key("pitch", seat_off, seated_pitch)
+    plan.key("s", seat_off, slide_s)
+    plan.key("z", seat_off, z_slide)
     plan.pose(t4, _PELVIS_AHEAD, 0.0, stand)
     return t4
+
+
+def _rising_position(seat: SeatParams, seated_s: float, pitch: float, lean: float, gait: GaitParams,
+                     skel: _Skeleton) -> tuple[float, float]:
+    """Pelvis (s, z) on the seat, at or in front of ``seated_s``, from which the body can rise.
+
+    The first slide forward (1 cm steps, the pelvis kept :data:`_SEAT_EDGE_CLEARANCE` behind the
+    seat's front) that puts the centre of mass :data:`_RISE_COM_MARGIN` in front of the heels.
+    """
+    model, _ = _seat_model(seat, skel.stature)
+    data = mujoco.MjData(model)
+    feet = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
+            and model.body(model.geom_bodyid[g]).name in FEET]
+    last = seat.front - _SEAT_EDGE_CLEARANCE
+    for pelvis_s in np.arange(seated_s, last + 1e-9, 0.01):
+        z = _seated_height(seat, 0.0, pelvis_s, pitch, gait, skel)
+        frames = _standing_frames(np.full(2, pelvis_s), np.full(2, z), np.full(2, pitch), 0.0, gait, skel,
+                                  spine=lean, arms=0.6 * lean)
+        data.qpos[:] = _solve(frames, skel, gait, 30.0, skel.leg * 0.9999).qpos()[0]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        heels = min((data.geom_xpos[g] - np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g])[0]
+                    for g in feet)
+        if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
+            return float(pelvis_s), z
+    raise RuntimeError(f"no pelvis position on this seat (front at {seat.front:.2f} m) puts the centre of "
+                       f"mass over the feet for rising")
 
 
 def _seat_contacts(motion: Motion, boxes: list[Box], stature: float) -> np.ndarray:

@@ -112,6 +112,32 @@ def test_chair_sit_rests_on_the_seat():
     assert not motion.contacts[:, [BODY_NAMES.index("L_Hand"), BODY_NAMES.index("R_Hand")]].any()
 
 
+@pytest.mark.parametrize("seed", [1, SEED, 7])
+def test_chair_sit_rises_with_the_centre_of_mass_over_the_feet(seed):
+    """From the frame the thighs leave the seat until a foot lifts, the body's centre of mass is
+    above the soles (statics: otherwise no ground force can lift it without falling back)."""
+    import mujoco
+
+    boxes, motion, _ = _clip("chair_sit", seed)
+    model = scene_model(boxes, 1.70)
+    data = mujoco.MjData(model)
+    seated = np.flatnonzero(motion.contacts[:, BODY_NAMES.index("L_Hip")])
+    planted = motion.contacts[:, [BODY_NAMES.index("L_Ankle"), BODY_NAMES.index("R_Ankle")]].all(axis=1)
+    first_lift = seated[-1] + np.argmin(planted[seated[-1]:])
+    assert first_lift > seated[-1] + motion.fps * 0.3  # a rise, not a jump
+    soles = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
+             and model.body(model.geom_bodyid[g]).name in FEET]
+    qpos = motion.qpos()
+    for k in range(seated[-1], first_lift):
+        data.qpos[:qpos.shape[1]] = qpos[k]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        extent = [np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g] for g in soles]
+        heel = min(data.geom_xpos[g][0] - e[0] for g, e in zip(soles, extent))
+        toe = max(data.geom_xpos[g][0] + e[0] for g, e in zip(soles, extent))
+        assert heel <= data.subtree_com[model.body("Pelvis").id][0] <= toe, k
+
+
 def test_bundled_clips_are_what_the_generator_makes():
     entries = _read(BUNDLED_REGISTRY)
     assert set(BUNDLED) <= set(entries)
