@@ -49,11 +49,12 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import trimesh
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import QhullError
 from scipy.spatial.transform import Rotation
 from sklearn.cluster import DBSCAN
 from sklearn.linear_model import LinearRegression, RANSACRegressor
 
+from crisp_gym.balance import distance_outside_hull
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import Motion, compute_kinematics
@@ -299,18 +300,6 @@ def _ramp(x: np.ndarray | float, zero: float, one: float) -> np.ndarray:
     return np.clip((np.asarray(x, dtype=float) - zero) / (one - zero), 0.0, 1.0)
 
 
-def _outside(points_xy: np.ndarray, p: np.ndarray) -> float:
-    """How far ``p`` lies outside the convex hull of ``points_xy`` (negative inside); ``inf`` when
-    the points span no area."""
-    if len(points_xy) < 3:
-        return math.inf
-    try:
-        hull = ConvexHull(points_xy)
-    except QhullError:
-        return math.inf
-    return float(np.max(hull.equations[:, :2] @ p + hull.equations[:, 2]))
-
-
 def _foot_confidence(geo: BodyGeometry, cfg: KinematicConfig) -> np.ndarray:
     """(T, 4) lowness of each foot body: its patch height over its lowest height nearby in space and time."""
     t = geo.num_frames
@@ -357,10 +346,10 @@ def kinematic_contacts(motion: Motion, cfg: KinematicConfig | None = None,
         standing = [geo.patches[idx[b]][k, :, :2] for j, b in enumerate(PARTS["foot"]) if feet[k, j] >= 0.5]
         feet_xy = np.concatenate(standing) if standing else np.zeros((0, 2))
         com = geo.com[k, :2]
-        unbalanced = float(_ramp(_outside(feet_xy, com), 0.0, m))  # inf (no feet down) -> 1
+        unbalanced = float(_ramp(distance_outside_hull(feet_xy, com), 0.0, m))  # inf (no feet down) -> 1
         if unbalanced == 0.0:
             continue
-        closes = _ramp(_outside(np.concatenate([feet_xy, seat_patch[k, :, :2]]), com), m, 0.0)
+        closes = _ramp(distance_outside_hull(np.concatenate([feet_xy, seat_patch[k, :, :2]]), com), m, 0.0)
         seat = float(low[k] * unbalanced * closes)
         for body in PARTS["seat"]:
             prob[k, idx[body]] = seat
@@ -369,7 +358,7 @@ def kinematic_contacts(motion: Motion, cfg: KinematicConfig | None = None,
         for hand, shoulder in (("L_Hand", "L_Shoulder"), ("R_Hand", "R_Shoulder")):
             patch = geo.patches[idx[hand]][k]
             below = _ramp(geo.body_pos[k, idx[shoulder], 2] - patch[:, 2].mean(), 0.0, cfg.hand_below_shoulder)
-            closes = _ramp(_outside(np.concatenate([feet_xy, patch[:, :2]]), com), m, 0.0)
+            closes = _ramp(distance_outside_hull(np.concatenate([feet_xy, patch[:, :2]]), com), m, 0.0)
             prob[k, idx[hand]] = float(unbalanced * closes * below * (1.0 - seat))
     return ContactEvidence(prob=prob, source="kinematic")
 

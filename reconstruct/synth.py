@@ -13,9 +13,11 @@ for ``flat_walk``) and a lateral offset. The motion is assembled in stages:
 
 1. a footstep plan (which foot lands where and when; anchors on treads and platform edges,
    filled with even steps on level ground) and pelvis keyframes per channel (progress, sway,
-   height, lean), interpolated with shape-preserving cubic splines so nothing overshoots;
+   height, lean), interpolated with shape-preserving cubic splines so nothing overshoots; while
+   walking, progress and sway are those of a linear inverted pendulum whose centre of pressure
+   follows the feet, so that a body can balance on the motion (:mod:`crisp_gym.balance`);
 2. swing arcs whose lift height is the smallest that keeps the foot clear of all boxes;
-3. the pelvis height limited by what the legs can reach (an inverted-pendulum-like bob emerges);
+3. the pelvis height limited by what the legs can reach, with small vertical accelerations;
 4. leg IK (hip's three hinges, knee flexion, ankle keeping the foot flat), counter-swinging arms,
    trunk lean, a level head; then a check with MuJoCo forward kinematics that lowers the pelvis
    where a stance foot does not reach its surface.
@@ -34,9 +36,11 @@ import mujoco
 import numpy as np
 import yaml
 from scipy.interpolate import PchipInterpolator
+from scipy.optimize import lsq_linear
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.balance import GRAVITY
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import (
     BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid, joint_range_deg,
@@ -86,8 +90,8 @@ _SIDE = np.array([1.0, -1.0])  # lateral sign of the left and right foot (left i
 _STANCE_BODIES = (("L_Ankle", "L_Toe"), ("R_Ankle", "R_Toe"))
 _SEAT_BODIES = ("Pelvis", "L_Hip", "R_Hip")
 _SEAT_CONTACT_TOLERANCE = 0.005  # m: a thigh this close to the seat counts as resting on it
-_SEAT_OFF_SHARE = 0.45  # of the rise: lean and slide forward first, then leave the seat
-_RISE_COM_MARGIN = 0.03  # m: centre of mass in front of the heels when the pelvis leaves the seat
+_SEAT_OFF_SHARE = 0.45  # of a rise (a descent): on the seat, sliding and leaning, before (after) the feet bear the body
+_RISE_COM_MARGIN = 0.03  # m: centre of mass in front of the heels with the pelvis perched on the seat's front
 _SEAT_EDGE_CLEARANCE = 0.03  # m: the sliding pelvis stays this far behind the seat's front
 _SUPPORT_TOLERANCE = 0.005  # m: a stance foot body whose sole is this close to a box top is on it
 
@@ -447,6 +451,7 @@ def _add_walk(plan: _Plan, t0: float, targets: list[tuple[float, float]], first:
     stand = skel.pelvis_height - 0.012
     t = t0
     landed = [t0 - 1.0, t0 - 1.0]  # standing feet have been planted for a while
+    feet_before = [s for s, _ in plan.feet]
     for k, (s, z) in enumerate(targets):
         foot = first if k % 2 == 0 else 1 - first
         other = 1 - foot
@@ -473,6 +478,59 @@ def _add_walk(plan: _Plan, t0: float, targets: list[tuple[float, float]], first:
     plan.end = t + stand_after
     for when in (t + 0.6 * stand_after, plan.end):  # twice, so the motion comes to rest
         plan.pose(when, (s_l + s_r) / 2 + _PELVIS_AHEAD, 0.0, max(z_l, z_r) + stand)
+    _balance_pelvis(plan, t0 - _WALK_PREPARATION, feet_before, gait, skel)
+
+
+_WALK_PREPARATION = 0.3  # s before the first lift in which the body starts to shift over the stance foot
+_ZMP_HEEL, _ZMP_TOE = 0.0, 0.08  # m ahead of the ankle: the centre of pressure rolls from heel to toe
+_BALANCE_DT = 1.0 / 60.0
+_BALANCE_JERK_WEIGHT = 1e-4
+
+
+def _balance_pelvis(plan: _Plan, start: float, feet: list[float], gait: GaitParams, skel: _Skeleton) -> None:
+    """Replace the pelvis's path position and sway (channels ``s`` and ``lat``) of a walk from
+    ``start`` (at rest, feet at ``feet``) to ``plan.end`` (at rest) by ones a body can balance on.
+
+    Keyframes over the stance foot accelerated the body by up to ±7 m/s² (a centre of pressure
+    up to 1.4 m outside the feet, stopping a walk: :mod:`crisp_gym.balance`). Instead the pelvis
+    follows the linear inverted pendulum whose centre of pressure tracks the feet (Kajita et al.
+    2003): under the stance foot, rolling from heel to toe, moving to the next foot in double
+    support.
+    """
+    moves = sorted((m.lift, m.land, foot, m.s1) for foot in range(2) for m in plan.moves[foot] if m.lift >= start)
+    ends = np.array([start, plan.end])
+    knots_t = [start]
+    knots = {"s": [plan.channel("s", ends)[0]], "lat": [plan.channel("lat", ends)[0]]}
+    for lift, land, foot, landed_at in moves:
+        stance = 1 - foot
+        knots_t += [lift, land]
+        knots["s"] += [feet[stance] + _ZMP_HEEL, feet[stance] + _ZMP_TOE]
+        knots["lat"] += [_SIDE[stance] * gait.step_width / 2] * 2
+        feet[foot] = landed_at
+    knots_t.append(plan.end)
+    t = np.arange(start, plan.end + _BALANCE_DT / 2, _BALANCE_DT)
+    for channel, values in knots.items():
+        values.append(plan.channel(channel, ends)[1])
+        path = _pendulum_path(np.interp(t, knots_t, values), skel.pelvis_height, _BALANCE_DT)
+        plan.keys[channel] = [key for key in plan.keys[channel] if key[0] < start - 1e-6] + list(zip(t, path))
+
+
+def _pendulum_path(cop: np.ndarray, height: float, dt: float) -> np.ndarray:
+    """Positions of a linear inverted pendulum of ``height`` whose centre of pressure follows
+    ``cop`` (sampled every ``dt`` s), at rest at ``cop``'s ends: least squares over
+    ``c - height / g * c'' = cop`` with a small jerk penalty."""
+    n = len(cop)
+    pendulum = np.zeros((n - 2, n))
+    rows = np.arange(n - 2)
+    stiffness = height / GRAVITY / dt**2
+    pendulum[rows, rows], pendulum[rows, rows + 1], pendulum[rows, rows + 2] = -stiffness, 1 + 2 * stiffness, -stiffness
+    jerk = np.zeros((n - 3, n))
+    for j, coefficient in enumerate((-1.0, 3.0, -3.0, 1.0)):
+        jerk[np.arange(n - 3), np.arange(n - 3) + j] = coefficient * _BALANCE_JERK_WEIGHT / dt**3
+    rest = np.zeros((4, n))
+    rest[[0, 1, 2, 3], [0, 1, n - 2, n - 1]] = 1e3  # two equal samples at each end: at rest
+    rhs = np.concatenate([cop[1:-1], np.zeros(n - 3), 1e3 * cop[[0, 0, -1, -1]]])
+    return np.linalg.lstsq(np.vstack([pendulum, jerk, rest]), rhs, rcond=None)[0]
 
 
 def _fill(a: float, b: float, step: float) -> list[float]:
@@ -709,7 +767,7 @@ def _hips(frames: _Frames, skel: _Skeleton) -> tuple[np.ndarray, np.ndarray]:
     return rot, pelvis[:, None, :] + np.einsum("tij,lj->tli", rot, skel.hip)
 
 
-def _limit_pelvis_height(frames: _Frames, skel: _Skeleton, reach: float) -> None:
+def _limit_pelvis_height(frames: _Frames, skel: _Skeleton, reach: float, fps: float) -> None:
     """Lower the pelvis where a leg could not reach its foot, keeping the height smooth."""
     rot, hips = _hips(frames, skel)
     horizontal = np.linalg.norm(hips[..., :2] - frames.ankle[..., :2], axis=2)
@@ -718,10 +776,27 @@ def _limit_pelvis_height(frames: _Frames, skel: _Skeleton, reach: float) -> None
     # A swinging leg shortens itself by flexing; it only has to reach near lift-off and landing.
     free = ~frames.stance & (frames.phase > 0.1) & (frames.phase < 0.85)
     limit = np.where(free, np.inf, limit).min(axis=1)
-    z = gaussian_filter1d(np.minimum(frames.pelvis_z, limit), 2.0, mode="nearest")
-    excess = np.maximum(z - limit, 0.0)
-    z -= gaussian_filter1d(maximum_filter1d(excess, 7), 2.0, mode="nearest")
-    frames.pelvis_z = np.minimum(z, limit)
+    frames.pelvis_z = _smooth_below(frames.pelvis_z, limit, fps)
+
+
+_HEIGHT_ACCEL_WEIGHT = 0.03  # m of height error that weigh as much as 1 m/s² of vertical acceleration
+
+
+def _smooth_below(z: np.ndarray, limit: np.ndarray, fps: float) -> np.ndarray:
+    """The height closest to ``z`` with small vertical accelerations that stays under ``limit``
+    (bounded least squares).
+
+    Clipping to the limit alone dips the pelvis by up to 10 cm within a few frames at each
+    double support: vertical accelerations near ±g that no leg force produces.
+    """
+    n = len(z)
+    if n < 3:
+        return np.minimum(z, limit)
+    accel = np.zeros((n - 2, n))
+    rows = np.arange(n - 2)
+    accel[rows, rows], accel[rows, rows + 1], accel[rows, rows + 2] = 1.0, -2.0, 1.0
+    matrix = np.vstack([np.eye(n), _HEIGHT_ACCEL_WEIGHT * fps**2 * accel])
+    return lsq_linear(matrix, np.concatenate([z, np.zeros(n - 2)]), bounds=(-np.inf, limit), method="bvls").x
 
 
 def _solve(frames: _Frames, skel: _Skeleton, gait: GaitParams, fps: float, reach: float) -> Motion:
@@ -839,7 +914,7 @@ def _to_motion(frames: _Frames, skel: _Skeleton, gait: GaitParams, fps: float, m
     """IK, then checks on the real model: where a stance ankle misses its target the pelvis is
     lowered, and where a swinging foot (its toes dropped by the IK) touches the scene its arc
     is raised; both are redone until neither happens."""
-    _limit_pelvis_height(frames, skel, _REACH * skel.leg)
+    _limit_pelvis_height(frames, skel, _REACH * skel.leg, fps)
     scene = scene_model(boxes, skel.stature)
     feet = [[scene.body(b).id for b in bodies] for bodies in _STANCE_BODIES]
     data = mujoco.MjData(scene)
@@ -938,43 +1013,44 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     The trunk's forward lean comes from the spine while the pelvis tilts back (as it does when
     sitting): this keeps the hips' flexion below 90 degrees, where their x-y-z hinges are
     singular and ab/adduction would swing wildly.
+
+    The body lowers itself onto, and rises from, the front of the seat under a deep lean, where
+    the centre of mass is over the feet (:func:`_perched_position`), and slides back and forth
+    on the seat with its thighs loaded. Sitting straight back onto the seat and rising from it
+    put the centre of mass 9-10 cm behind the heels (the first generator): no ground force
+    lowers or lifts a body from there without it falling.
     """
     stand = skel.pelvis_height - 0.012
     seated_s = -rng.uniform(0.29, 0.33)
     seated_pitch = -0.2
     z_seat = _seated_height(seat, 0.0, seated_s, seated_pitch, gait, skel)
     down, hold, up = rng.uniform(1.4, 1.8), rng.uniform(1.2, 1.8), rng.uniform(1.4, 1.8)
-    lean_down, lean_up = rng.uniform(0.6, 0.75), rng.uniform(1.05, 1.2)
+    lean_down, lean_up = rng.uniform(1.05, 1.2), rng.uniform(1.05, 1.2)
     t1 = 0.6
     t2, t3 = t1 + down, t1 + down + hold
     t4 = t3 + up
     plan.pose(0.0, _PELVIS_AHEAD, 0.0, stand)
     plan.pose(t1, _PELVIS_AHEAD, 0.0, stand)
-    # Down: the trunk leans and the pelvis travels back before it descends onto the seat.
-    plan.key("spine", t1 + 0.45 * down, lean_down)
-    plan.key("arms", t1 + 0.45 * down, 0.5 * lean_down)
-    plan.key("s", t1 + 0.75 * down, seated_s)
-    plan.key("z", t1 + 0.55 * down, 0.5 * (stand + z_seat) + 0.05)
+    # Down: lean, lower onto the seat's front, then slide back and sit up.
+    touch = t1 + (1.0 - _SEAT_OFF_SHARE) * down
+    perch_s, z_perch = _perched_position(seat, seated_s, seated_pitch, lean_down, gait, skel)
+    plan.key("spine", t1 + 0.6 * (touch - t1), lean_down)
+    plan.key("arms", t1 + 0.6 * (touch - t1), 0.6 * lean_down)
+    plan.pose(touch, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_down, arms=0.6 * lean_down)
     plan.pose(t2, seated_s, 0.0, z_seat, pitch=seated_pitch)
     plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch)
-    # Up: with the thighs still loaded, lean forward and slide to the seat's front until the
-    # centre of mass is over the feet, then rise while moving forward. Rising with the centre of
-    # mass behind the heels (9-10 cm in the first generator) has no static solution: a body
-    # tracking it falls back onto the seat.
+    # Up: slide forward and lean, then rise while moving forward.
     seat_off = t3 + _SEAT_OFF_SHARE * up
-    slide_s, z_slide = _rising_position(seat, seated_s, seated_pitch, lean_up, gait, skel)
-    plan.key("spine", seat_off, lean_up)
-    plan.key("arms", seat_off, 0.6 * lean_up)
-    plan.key("pitch", seat_off, seated_pitch)
-    plan.key("s", seat_off, slide_s)
-    plan.key("z", seat_off, z_slide)
+    perch_s, z_perch = _perched_position(seat, seated_s, seated_pitch, lean_up, gait, skel)
+    plan.pose(seat_off, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
     plan.pose(t4, _PELVIS_AHEAD, 0.0, stand)
     return t4
 
 
-def _rising_position(seat: SeatParams, seated_s: float, pitch: float, lean: float, gait: GaitParams,
-                     skel: _Skeleton) -> tuple[float, float]:
-    """Pelvis (s, z) on the seat, at or in front of ``seated_s``, from which the body can rise.
+def _perched_position(seat: SeatParams, seated_s: float, pitch: float, lean: float, gait: GaitParams,
+                      skel: _Skeleton) -> tuple[float, float]:
+    """Pelvis (s, z) on the seat, at or in front of ``seated_s``, from which the body can rise
+    (and onto which it can lower itself) with the spine leaning by ``lean``.
 
     The first slide forward (1 cm steps, the pelvis kept :data:`_SEAT_EDGE_CLEARANCE` behind the
     seat's front) that puts the centre of mass :data:`_RISE_COM_MARGIN` in front of the heels.
@@ -996,7 +1072,7 @@ def _rising_position(seat: SeatParams, seated_s: float, pitch: float, lean: floa
         if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
             return float(pelvis_s), z
     raise RuntimeError(f"no pelvis position on this seat (front at {seat.front:.2f} m) puts the centre of "
-                       f"mass over the feet for rising")
+                       f"mass over the feet")
 
 
 def _seat_contacts(motion: Motion, boxes: list[Box], stature: float) -> np.ndarray:
