@@ -75,8 +75,11 @@ def motion_balance(motion: Motion, stature: float = 1.70) -> Balance:
     motion = motion.in_humanoid_order()
     qpos, qvel = motion.qpos(), motion.qvel()
     qacc = np.gradient(qvel, 1.0 / motion.fps, axis=0)
-    contacts = motion.contacts if motion.contacts is not None else np.ones((motion.num_frames, len(BODY_NAMES)), bool)
     feet = [BODY_NAMES.index(b) for b in FEET]
+    contacts = motion.contacts
+    if contacts is None:
+        contacts = np.zeros((motion.num_frames, len(BODY_NAMES)), dtype=bool)
+        contacts[:, feet] = True
     others = [i for i in range(len(BODY_NAMES)) if i not in feet]
     soles = {i: [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(BODY_NAMES[i]).id
                  and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX] for i in feet}

@@ -492,7 +492,7 @@ def _balance_pelvis(plan: _Plan, start: float, feet: list[float], gait: GaitPara
     ``start`` (at rest, feet at ``feet``) to ``plan.end`` (at rest) by ones a body can balance on.
 
     Keyframes over the stance foot accelerated the body by up to ±7 m/s² (a centre of pressure
-    up to 1.4 m outside the feet, stopping a walk: :mod:`crisp_gym.balance`). Instead the pelvis
+    up to 1.5 m outside the feet, stopping a walk: :mod:`crisp_gym.balance`). Instead the pelvis
     follows the linear inverted pendulum whose centre of pressure tracks the feet (Kajita et al.
     2003): under the stance foot, rolling from heel to toe, moving to the next foot in double
     support.
@@ -780,13 +780,15 @@ def _limit_pelvis_height(frames: _Frames, skel: _Skeleton, reach: float, fps: fl
 
 
 _HEIGHT_ACCEL_WEIGHT = 0.03  # m of height error that weigh as much as 1 m/s² of vertical acceleration
+_HEIGHT_KEPT_WEIGHT = 100.0
 
 
 def _smooth_below(z: np.ndarray, limit: np.ndarray, fps: float) -> np.ndarray:
     """The height closest to ``z`` with small vertical accelerations that stays under ``limit``
-    (bounded least squares).
+    (bounded least squares). Where the legs are far from straight (a seated pelvis) the planned
+    height weighs :data:`_HEIGHT_KEPT_WEIGHT` times more, so that it stays on its seat.
 
-    Clipping to the limit alone dips the pelvis by up to 10 cm within a few frames at each
+    Clipping to the limit alone dipped the pelvis by up to 10 cm within a few frames at each
     double support: vertical accelerations near ±g that no leg force produces.
     """
     n = len(z)
@@ -795,8 +797,11 @@ def _smooth_below(z: np.ndarray, limit: np.ndarray, fps: float) -> np.ndarray:
     accel = np.zeros((n - 2, n))
     rows = np.arange(n - 2)
     accel[rows, rows], accel[rows, rows + 1], accel[rows, rows + 2] = 1.0, -2.0, 1.0
-    matrix = np.vstack([np.eye(n), _HEIGHT_ACCEL_WEIGHT * fps**2 * accel])
-    return lsq_linear(matrix, np.concatenate([z, np.zeros(n - 2)]), bounds=(-np.inf, limit), method="bvls").x
+    slack = np.clip((limit - z - 0.1) / 0.1, 0.0, 1.0)  # 0 up to 10 cm under the reach, 1 from 20 cm
+    weight = 1.0 + (_HEIGHT_KEPT_WEIGHT - 1.0) * slack
+    matrix = np.vstack([np.diag(weight), _HEIGHT_ACCEL_WEIGHT * fps**2 * accel])
+    return lsq_linear(matrix, np.concatenate([weight * z, np.zeros(n - 2)]), bounds=(-np.inf, limit),
+                      method="bvls").x
 
 
 def _solve(frames: _Frames, skel: _Skeleton, gait: GaitParams, fps: float, reach: float) -> Motion:
@@ -1037,14 +1042,28 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     plan.key("spine", t1 + 0.6 * (touch - t1), lean_down)
     plan.key("arms", t1 + 0.6 * (touch - t1), 0.6 * lean_down)
     plan.pose(touch, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_down, arms=0.6 * lean_down)
+    _slide(plan, seat, (touch, perch_s), (t2, seated_s), seated_pitch, gait, skel)
     plan.pose(t2, seated_s, 0.0, z_seat, pitch=seated_pitch)
     plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch)
     # Up: slide forward and lean, then rise while moving forward.
     seat_off = t3 + _SEAT_OFF_SHARE * up
     perch_s, z_perch = _perched_position(seat, seated_s, seated_pitch, lean_up, gait, skel)
+    _slide(plan, seat, (t3, seated_s), (seat_off, perch_s), seated_pitch, gait, skel)
     plan.pose(seat_off, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
     plan.pose(t4, _PELVIS_AHEAD, 0.0, stand)
     return t4
+
+
+def _slide(plan: _Plan, seat: SeatParams, start: tuple[float, float], end: tuple[float, float], pitch: float,
+           gait: GaitParams, skel: _Skeleton) -> None:
+    """Pelvis keys (``s``, ``z``) between two seated keyframes ``(time, s)``, at the seated height
+    of each: the height that keeps the thighs on the seat is not linear in ``s``, and a spline
+    through the ends alone sank them ~1 cm into it."""
+    for u in (0.25, 0.5, 0.75):
+        s = start[1] + u * (end[1] - start[1])
+        when = start[0] + u * (end[0] - start[0])
+        plan.key("s", when, s)
+        plan.key("z", when, _seated_height(seat, 0.0, s, pitch, gait, skel))
 
 
 def _perched_position(seat: SeatParams, seated_s: float, pitch: float, lean: float, gait: GaitParams,
