@@ -483,8 +483,8 @@ def _add_walk(plan: _Plan, t0: float, targets: list[tuple[float, float]], first:
 
 _WALK_PREPARATION = 0.3  # s before the first lift in which the body starts to shift over the stance foot
 _ZMP_HEEL, _ZMP_TOE = 0.0, 0.08  # m ahead of the ankle: the centre of pressure rolls from heel to toe
-_BALANCE_DT = 1.0 / 60.0
-_BALANCE_JERK_WEIGHT = 1e-4
+_BALANCE_DT = 1.0 / 60.0  # s: the pendulum's time step (keys are written at this rate)
+_BALANCE_JERK_WEIGHT = 1e-4  # m of centre-of-pressure error that weigh as much as 1 m/s³ of jerk
 
 
 def _balance_pelvis(plan: _Plan, start: float, feet: list[float], gait: GaitParams, skel: _Skeleton) -> None:
@@ -780,7 +780,7 @@ def _limit_pelvis_height(frames: _Frames, skel: _Skeleton, reach: float, fps: fl
 
 
 _HEIGHT_ACCEL_WEIGHT = 0.03  # m of height error that weigh as much as 1 m/s² of vertical acceleration
-_HEIGHT_KEPT_WEIGHT = 100.0
+_HEIGHT_KEPT_WEIGHT = 100.0  # weight of the planned height, relative, where the legs are far from straight
 
 
 def _smooth_below(z: np.ndarray, limit: np.ndarray, fps: float) -> np.ndarray:
