@@ -20,7 +20,9 @@ that, planted feet are laid flat (:func:`~crisp_gym.motion.level_feet`): their s
 turned level across and the toes are posed from the floor, not from the file. Captured feet
 are often rolled onto an edge (CMU's by 10-20°) and captured toes curl into the floor and flip
 by 80° within a few frames; both lifted the body onto the edge or the toe tips, and the
-simulated toes, fighting the floor, chattered at hundreds of rad/s.
+simulated toes, fighting the floor, chattered at hundreds of rad/s. The hinge angles
+of the forearms and hands are low-passed at 6 Hz first (:func:`~crisp_gym.motion.low_pass_joints`):
+captured hands flicker (CMU 131_01's right wrist turns at up to 6,500 °/s relative to the forearm).
 """
 
 from __future__ import annotations
@@ -35,11 +37,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, default_rest_joints, joint_range_deg
-from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, level_feet, rotations_to_hinge_angles
+from crisp_gym.motion import (
+    Motion, StanceGrounding, ground, ground_stance, level_feet, low_pass_joints, rotations_to_hinge_angles,
+)
 
 log = logging.getLogger(__name__)
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
+
+FLICKERING_BODIES: tuple[str, ...] = ("L_Elbow", "R_Elbow", "L_Wrist", "R_Wrist", "L_Hand", "R_Hand")
+"""Bodies whose captured rotations are low-passed on import: hand markers are the noisiest."""
 _ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 
@@ -494,7 +501,8 @@ class BvhRetarget:
 def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str = "y",
                  joint_map: Mapping[str, str] | None = None, clip_to_range: bool = True,
                  model: mujoco.MjModel | None = None,
-                 grounding: StanceGrounding | None = StanceGrounding()) -> BvhRetarget:
+                 grounding: StanceGrounding | None = StanceGrounding(),
+                 low_pass_hz: float | None = 6.0) -> BvhRetarget:
     """Retarget a parsed BVH onto the humanoid (see the module docstring for the method).
 
     ``joint_map`` (our body -> BVH joint name) replaces the built-in tables; ``model`` is the
@@ -503,7 +511,9 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     frame (motion capture floors drift by centimetres over a take, see
     :func:`~crisp_gym.motion.stance_floor`); ``None`` keeps the feet as retargeted and shifts the
     whole motion by one offset instead (:func:`~crisp_gym.motion.ground`). Clipping into the
-    joint ranges comes after the feet are laid flat.
+    joint ranges comes after the feet are laid flat. ``low_pass_hz`` low-passes the elbows', wrists'
+    and hands' hinge angles first (:data:`FLICKERING_BODIES`,
+    :func:`~crisp_gym.motion.low_pass_joints`; ``None``: as captured).
     """
     skeleton = clip.skeleton
     mapping = match_joints(skeleton, joint_map)
@@ -531,6 +541,8 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     root_quat = Rotation.from_matrix(glob["Pelvis"]).as_quat(scalar_first=True)
     motion = Motion(fps=clip.fps, root_pos=root_pos, root_quat=root_quat,
                     dof_pos=rotations_to_hinge_angles(local[:, 1:]).reshape(t, -1))
+    if low_pass_hz is not None:
+        motion = low_pass_joints(motion, low_pass_hz, FLICKERING_BODIES)
     model = model if model is not None else build_humanoid()
     if grounding is not None:
         motion = level_feet(motion, model, grounding)

@@ -19,6 +19,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation, Slerp
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
@@ -453,6 +454,29 @@ def ground_stance(motion: Motion, model: mujoco.MjModel, config: StanceGrounding
     offset = np.zeros((motion.num_frames, 3))
     offset[:, 2] = floor_height - floor
     return replace(motion, root_pos=motion.root_pos + offset)
+
+
+def low_pass_joints(motion: Motion, cutoff_hz: float, bodies: tuple[str, ...] | None = None) -> Motion:
+    """``motion`` with the hinge angles of ``bodies`` (all when ``None``) low-passed (zero-phase
+    4th-order Butterworth, the usual treatment of captured joint angles; walking has no content
+    above ~6 Hz).
+
+    Captured hands flicker: CMU's wrist markers turn the wrist by up to 6,500 °/s relative to the
+    forearm, which a servo cannot follow and a policy sees as a velocity far outside anything it
+    was trained on. The root is left as it is; clips too short to filter are returned unchanged.
+    """
+    if not (np.isfinite(cutoff_hz) and cutoff_hz > 0):
+        raise ValueError(f"cutoff_hz must be a positive frequency, got {cutoff_hz}")
+    nyquist = motion.fps / 2
+    if cutoff_hz >= nyquist:
+        return motion
+    sos = butter(4, cutoff_hz / nyquist, output="sos")
+    if motion.num_frames <= 3 * (2 * len(sos) + 1):  # sosfiltfilt's default padding
+        return motion
+    columns = [i for i, name in enumerate(DOF_NAMES) if bodies is None or name.rsplit("_", 1)[0] in bodies]
+    dof = motion.in_humanoid_order().dof_pos.copy()
+    dof[:, columns] = sosfiltfilt(sos, dof[:, columns], axis=0)
+    return replace(motion.in_humanoid_order(), dof_pos=dof)
 
 
 def level_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding()) -> Motion:

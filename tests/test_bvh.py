@@ -576,10 +576,11 @@ def _cmu_path(name: str) -> Path:
 
 @pytest.fixture(scope="module")
 def cmu(model):
-    """131_01 retargeted with and without clipping into the joint ranges."""
+    """131_01 retargeted, and without clipping into the joint ranges or low-passing the hands."""
     path = _cmu_path("131_01")
     clip = parse_bvh(path)
-    return path, clip, model, retarget_bvh(clip, model=model), retarget_bvh(clip, clip_to_range=False, model=model)
+    return (path, clip, model, retarget_bvh(clip, model=model),
+            retarget_bvh(clip, clip_to_range=False, model=model, low_pass_hz=None))
 
 
 @pytest.fixture(scope="module", params=CMU_CLIPS)
@@ -684,3 +685,18 @@ def test_cmu_clip_bone_directions_match(cmu):
     # Within the humanoid's joint ranges the legs stay close (kicks near the hip's gimbal lock clip).
     leg_err = errors(clipped, legs)
     assert leg_err.mean() < 2.0 and np.percentile(leg_err, 95) < 5.0
+
+
+def test_cmu_hand_flicker_is_filtered(cmu_clip, model):
+    """Captured wrists flicker (thousands of °/s between frames): the import low-passes the
+    forearms and hands, so the peak wrist speed falls to under half of the raw retarget's."""
+    _, clip, result = cmu_clip
+    raw = retarget_bvh(clip, model=model, low_pass_hz=None)
+    wrists = [DOF_NAMES.index(f"{side}_Wrist_{axis}") for side in "LR" for axis in "xyz"]
+
+    def peak_speed(motion):
+        return (np.abs(np.diff(motion.dof_pos[:, wrists], axis=0)) * motion.fps).max()
+
+    assert peak_speed(result.motion) < 0.5 * peak_speed(raw.motion)
+    legs = [i for i, name in enumerate(DOF_NAMES) if name.split("_")[1] in ("Hip", "Knee", "Ankle")]
+    np.testing.assert_allclose(result.motion.dof_pos[:, legs], raw.motion.dof_pos[:, legs], atol=1e-9)

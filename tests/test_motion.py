@@ -4,7 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.motion import (Motion, compute_kinematics, foot_sole_heights, ground, hinge_angles_to_rotations,
-                              level_feet, planted_feet, rotations_to_hinge_angles)
+                              level_feet, low_pass_joints, planted_feet, rotations_to_hinge_angles)
 from tests.conftest import sway_motion
 
 
@@ -141,3 +141,21 @@ def test_level_feet_flattens_planted_feet_only():
     moved = compute_kinematics(level, model).body_pos - compute_kinematics(motion, model).body_pos
     toes = [BODY_NAMES.index("L_Toe"), BODY_NAMES.index("R_Toe")]
     np.testing.assert_allclose(np.delete(moved, toes, axis=1), 0.0, atol=1e-12)
+
+
+def test_low_pass_joints_keeps_slow_motion_and_removes_flicker():
+    fps, frames = 120.0, 480
+    t = np.arange(frames) / fps
+    slow = 0.5 * np.sin(2 * np.pi * 1.0 * t)  # a 1 Hz arm swing
+    flicker = 0.2 * np.sin(2 * np.pi * 25.0 * t)  # marker noise
+    dof = np.zeros((frames, len(DOF_NAMES)))
+    dof[:, DOF_NAMES.index("R_Wrist_z")] = slow + flicker
+    motion = Motion(fps=fps, root_pos=np.zeros((frames, 3)), root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)),
+                    dof_pos=dof)
+    filtered = low_pass_joints(motion, 6.0).dof_pos[:, DOF_NAMES.index("R_Wrist_z")]
+    inner = slice(60, -60)  # away from the ends' padding
+    np.testing.assert_allclose(filtered[inner], slow[inner], atol=0.01)  # 25 Hz: down by > 95 %
+    np.testing.assert_array_equal(low_pass_joints(motion, 6.0).root_pos, motion.root_pos)
+    assert low_pass_joints(motion, 100.0) is motion  # above Nyquist: nothing to remove
+    with pytest.raises(ValueError, match="positive frequency"):
+        low_pass_joints(motion, 0.0)
