@@ -123,6 +123,25 @@ def test_running_mean_std_matches_numpy() -> None:
     assert clipped(torch.tensor([100.0, -100.0, 0.5])).tolist() == pytest.approx([2.0, -2.0, 0.5], abs=1e-4)
 
 
+def test_limited_statistics_weigh_new_data_as_if_that_many_samples_had_been_seen() -> None:
+    rng = np.random.default_rng(1)
+    old = rng.normal(0.0, 0.01, size=(100_000, 3))  # e.g. arms that barely moved
+    new = rng.normal(2.0, 1.0, size=(500, 3))
+    stats = RunningMeanStd(3, clip=1e9)
+    stats.update(torch.as_tensor(old))
+    stats.limit_count(1_000)
+    stats.update(torch.as_tensor(new))
+    expected = (1_000 * old.mean(axis=0) + 500 * new.mean(axis=0)) / 1_500
+    np.testing.assert_allclose(stats.mean.numpy(), expected, rtol=1e-9)
+    assert stats.count.item() == 1_500
+    stats.limit_count(1e9)  # a limit above the count changes nothing
+    assert stats.count.item() == 1_500
+    from train.ppo import TrainConfig
+
+    with pytest.raises(ValueError, match="init_stats_samples"):
+        TrainConfig(init_stats_samples=0)
+
+
 def test_obs_normalizer_is_shared_and_saved() -> None:
     normalizer = ObsNormalizer(K)
     actor = build_actor(SMALL_MLP, K, False, normalizer)

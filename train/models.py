@@ -130,6 +130,12 @@ class RunningMeanStd(nn.Module):
         self.var.copy_(m2 / total)
         self.count.fill_(total)
 
+    @torch.no_grad()
+    def limit_count(self, samples: float) -> None:
+        """Let the statistics count as at most ``samples`` samples, so later batches move them
+        as much as if only that many had been seen (a warm start on different data)."""
+        self.count.clamp_(max=float(samples))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         mean = self.mean.to(x.dtype)
         std = torch.sqrt(self.var + self.eps).to(x.dtype)
@@ -157,6 +163,11 @@ class ObsNormalizer(nn.Module):
         if self.enabled:
             self.proprio.update(proprio)
             self.targets.update(targets)
+
+    def limit_count(self, samples: float) -> None:
+        """:meth:`RunningMeanStd.limit_count` for both statistics."""
+        self.proprio.limit_count(samples)
+        self.targets.limit_count(samples)
 
     def forward(self, proprio: torch.Tensor, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.enabled:
