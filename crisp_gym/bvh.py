@@ -44,11 +44,11 @@ from crisp_gym.motion import (
 log = logging.getLogger(__name__)
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
+_ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
+_POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 
 FLICKERING_BODIES: tuple[str, ...] = ("L_Elbow", "R_Elbow", "L_Wrist", "R_Wrist", "L_Hand", "R_Hand")
 """Bodies whose captured rotations are low-passed on import: hand markers are the noisiest."""
-_ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
-_POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 
 
 @dataclass(frozen=True)

@@ -474,9 +474,10 @@ def low_pass_joints(motion: Motion, cutoff_hz: float, bodies: tuple[str, ...] | 
     if motion.num_frames <= 3 * (2 * len(sos) + 1):  # sosfiltfilt's default padding
         return motion
     columns = [i for i, name in enumerate(DOF_NAMES) if bodies is None or name.rsplit("_", 1)[0] in bodies]
-    dof = motion.in_humanoid_order().dof_pos.copy()
+    motion = motion.in_humanoid_order()
+    dof = motion.dof_pos.copy()
     dof[:, columns] = sosfiltfilt(sos, dof[:, columns], axis=0)
-    return replace(motion.in_humanoid_order(), dof_pos=dof)
+    return replace(motion, dof_pos=dof)
 
 
 def level_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding()) -> Motion:

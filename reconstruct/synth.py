@@ -1020,7 +1020,7 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     singular and ab/adduction would swing wildly.
 
     The body lowers itself onto, and rises from, the front of the seat under a deep lean, where
-    the centre of mass is over the feet (:func:`_perched_position`), and slides back and forth
+    the centre of mass is over the feet (:func:`_perched_positions`), and slides back and forth
     on the seat with its thighs loaded. Sitting straight back onto the seat and rising from it
     put the centre of mass 9-10 cm behind the heels (the first generator): no ground force
     lowers or lifts a body from there without it falling.
@@ -1038,7 +1038,8 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     plan.pose(t1, _PELVIS_AHEAD, 0.0, stand)
     # Down: lean, lower onto the seat's front, then slide back and sit up.
     touch = t1 + (1.0 - _SEAT_OFF_SHARE) * down
-    perch_s, z_perch = _perched_position(seat, seated_s, seated_pitch, lean_down, gait, skel)
+    (perch_s, z_perch), (rise_s, z_rise) = _perched_positions(seat, seated_s, seated_pitch, (lean_down, lean_up),
+                                                              gait, skel)
     plan.key("spine", t1 + 0.6 * (touch - t1), lean_down)
     plan.key("arms", t1 + 0.6 * (touch - t1), 0.6 * lean_down)
     plan.pose(touch, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_down, arms=0.6 * lean_down)
@@ -1047,9 +1048,8 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch)
     # Up: slide forward and lean, then rise while moving forward.
     seat_off = t3 + _SEAT_OFF_SHARE * up
-    perch_s, z_perch = _perched_position(seat, seated_s, seated_pitch, lean_up, gait, skel)
-    _slide(plan, seat, (t3, seated_s), (seat_off, perch_s), seated_pitch, gait, skel)
-    plan.pose(seat_off, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
+    _slide(plan, seat, (t3, seated_s), (seat_off, rise_s), seated_pitch, gait, skel)
+    plan.pose(seat_off, rise_s, 0.0, z_rise, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
     plan.pose(t4, _PELVIS_AHEAD, 0.0, stand)
     return t4
 
@@ -1066,30 +1066,37 @@ def _slide(plan: _Plan, seat: SeatParams, start: tuple[float, float], end: tuple
         plan.key("z", when, _seated_height(seat, 0.0, s, pitch, gait, skel))
 
 
-def _perched_position(seat: SeatParams, seated_s: float, pitch: float, lean: float, gait: GaitParams,
-                      skel: _Skeleton) -> tuple[float, float]:
-    """Pelvis (s, z) on the seat, at or in front of ``seated_s``, from which the body can rise
-    (and onto which it can lower itself) with the spine leaning by ``lean``.
+def _perched_positions(seat: SeatParams, seated_s: float, pitch: float, leans: tuple[float, ...], gait: GaitParams,
+                       skel: _Skeleton) -> list[tuple[float, float]]:
+    """Per spine lean in ``leans``, the pelvis (s, z) on the seat, at or in front of ``seated_s``,
+    from which the body can rise (and onto which it can lower itself) leaning so.
 
-    The first slide forward (1 cm steps, the pelvis kept :data:`_SEAT_EDGE_CLEARANCE` behind the
-    seat's front) that puts the centre of mass :data:`_RISE_COM_MARGIN` in front of the heels.
+    For each lean, the first slide forward (1 cm steps, the pelvis kept
+    :data:`_SEAT_EDGE_CLEARANCE` behind the seat's front) that puts the centre of mass
+    :data:`_RISE_COM_MARGIN` in front of the heels. One scan serves every lean: the seated
+    height at each step (a bisection) is the costly part.
     """
     model, _ = _seat_model(seat, skel.stature)
     data = mujoco.MjData(model)
     feet = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
             and model.body(model.geom_bodyid[g]).name in FEET]
-    last = seat.front - _SEAT_EDGE_CLEARANCE
-    for pelvis_s in np.arange(seated_s, last + 1e-9, 0.01):
+    found: dict[float, tuple[float, float]] = {}
+    for pelvis_s in np.arange(seated_s, seat.front - _SEAT_EDGE_CLEARANCE + 1e-9, 0.01):
         z = _seated_height(seat, 0.0, pelvis_s, pitch, gait, skel)
-        frames = _standing_frames(np.full(2, pelvis_s), np.full(2, z), np.full(2, pitch), 0.0, gait, skel,
-                                  spine=lean, arms=0.6 * lean)
-        data.qpos[:] = _solve(frames, skel, gait, 30.0, skel.leg * 0.9999).qpos()[0]
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_comPos(model, data)
-        heels = min((data.geom_xpos[g] - np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g])[0]
-                    for g in feet)
-        if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
-            return float(pelvis_s), z
+        for lean in leans:
+            if lean in found:
+                continue
+            frames = _standing_frames(np.full(2, pelvis_s), np.full(2, z), np.full(2, pitch), 0.0, gait, skel,
+                                      spine=lean, arms=0.6 * lean)
+            data.qpos[:] = _solve(frames, skel, gait, 30.0, skel.leg * 0.9999).qpos()[0]
+            mujoco.mj_kinematics(model, data)
+            mujoco.mj_comPos(model, data)
+            heels = min((data.geom_xpos[g] - np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g])[0]
+                        for g in feet)
+            if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
+                found[lean] = (float(pelvis_s), z)
+        if len(found) == len(set(leans)):
+            return [found[lean] for lean in leans]
     raise RuntimeError(f"no pelvis position on this seat (front at {seat.front:.2f} m) puts the centre of "
                        f"mass over the feet")
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from crisp_gym.balance import GRAVITY, distance_outside_hull, motion_balance
-from crisp_gym.humanoid import BODY_NAMES, FEET, DOF_NAMES, HumanoidConfig, build_humanoid
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion
 from reconstruct.synth import KINDS, make_clip
 
