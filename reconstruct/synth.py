@@ -90,9 +90,11 @@ _SIDE = np.array([1.0, -1.0])  # lateral sign of the left and right foot (left i
 _STANCE_BODIES = (("L_Ankle", "L_Toe"), ("R_Ankle", "R_Toe"))
 _SEAT_BODIES = ("Pelvis", "L_Hip", "R_Hip")
 _SEAT_CONTACT_TOLERANCE = 0.005  # m: a thigh this close to the seat counts as resting on it
-_SEAT_OFF_SHARE = 0.45  # of a rise (a descent): on the seat, sliding and leaning, before (after) the feet bear the body
-_RISE_COM_MARGIN = 0.03  # m: centre of mass in front of the heels with the pelvis perched on the seat's front
-_SEAT_EDGE_CLEARANCE = 0.03  # m: the sliding pelvis stays this far behind the seat's front
+_SEAT_OFF_SHARE = 0.45  # of a rise (a descent): on the seat, leaning, before (after) the feet bear the body
+_RISE_COM_MARGIN = 0.01  # m: centre of mass in front of the heels with the pelvis perched on the seat's front
+_SEAT_EDGE_CLEARANCE = 0.03  # m: the seated pelvis stays this far behind the seat's front
+_SEATED_SPINE = -0.15  # rad: the seated trunk leans back a little, its weight on the seat
+_PERCH_SCAN_DEPTH = 0.22  # m behind the seat's front: where the search for a perched pelvis starts
 _SUPPORT_TOLERANCE = 0.005  # m: a stance foot body whose sole is this close to a box top is on it
 
 
@@ -1019,57 +1021,43 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     sitting): this keeps the hips' flexion below 90 degrees, where their x-y-z hinges are
     singular and ab/adduction would swing wildly.
 
-    The body lowers itself onto, and rises from, the front of the seat under a deep lean, where
-    the centre of mass is over the feet (:func:`_perched_positions`), and slides back and forth
-    on the seat with its thighs loaded. Sitting straight back onto the seat and rising from it
-    put the centre of mass 9-10 cm behind the heels (the first generator): no ground force
-    lowers or lifts a body from there without it falling.
+    The body lowers itself onto, stays on, and rises from the front of the seat, where under
+    the lean the centre of mass is over the feet (:func:`_perched_positions`). Sitting straight
+    back onto the seat and rising from it put the centre of mass 9-10 cm behind the heels (the
+    first generator): no ground force lowers or lifts a body from there without it falling.
+    Sliding back on the seat and forward again before rising (the second) asked a simulated
+    body to scoot 15 cm along a seat that holds it by friction: policies learned to skip the
+    slide, and from a seated start they could not rise.
     """
     stand = skel.pelvis_height - 0.012
-    seated_s = -rng.uniform(0.29, 0.33)
     seated_pitch = -0.2
-    z_seat = _seated_height(seat, 0.0, seated_s, seated_pitch, gait, skel)
     down, hold, up = rng.uniform(1.4, 1.8), rng.uniform(1.2, 1.8), rng.uniform(1.4, 1.8)
     lean_down, lean_up = rng.uniform(1.05, 1.2), rng.uniform(1.05, 1.2)
     t1 = 0.6
     t2, t3 = t1 + down, t1 + down + hold
     t4 = t3 + up
+    # The least lean needs the pelvis furthest forward; the other lean is then over the feet too.
+    seated_s, z_seat = max(_perched_positions(seat, seated_pitch, (lean_down, lean_up), gait, skel))
     plan.pose(0.0, _PELVIS_AHEAD, 0.0, stand)
     plan.pose(t1, _PELVIS_AHEAD, 0.0, stand)
-    # Down: lean, lower onto the seat's front, then slide back and sit up.
+    # Down: lean, lower onto the seat's front, then sit up.
     touch = t1 + (1.0 - _SEAT_OFF_SHARE) * down
-    (perch_s, z_perch), (rise_s, z_rise) = _perched_positions(seat, seated_s, seated_pitch, (lean_down, lean_up),
-                                                              gait, skel)
     plan.key("spine", t1 + 0.6 * (touch - t1), lean_down)
     plan.key("arms", t1 + 0.6 * (touch - t1), 0.6 * lean_down)
-    plan.pose(touch, perch_s, 0.0, z_perch, pitch=seated_pitch, spine=lean_down, arms=0.6 * lean_down)
-    _slide(plan, seat, (touch, perch_s), (t2, seated_s), seated_pitch, gait, skel)
-    plan.pose(t2, seated_s, 0.0, z_seat, pitch=seated_pitch)
-    plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch)
-    # Up: slide forward and lean, then rise while moving forward.
+    plan.pose(touch, seated_s, 0.0, z_seat, pitch=seated_pitch, spine=lean_down, arms=0.6 * lean_down)
+    plan.pose(t2, seated_s, 0.0, z_seat, pitch=seated_pitch, spine=_SEATED_SPINE)
+    plan.pose(t3, seated_s, 0.0, z_seat, pitch=seated_pitch, spine=_SEATED_SPINE)
+    # Up: lean forward on the seat, then rise while moving forward.
     seat_off = t3 + _SEAT_OFF_SHARE * up
-    _slide(plan, seat, (t3, seated_s), (seat_off, rise_s), seated_pitch, gait, skel)
-    plan.pose(seat_off, rise_s, 0.0, z_rise, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
+    plan.pose(seat_off, seated_s, 0.0, z_seat, pitch=seated_pitch, spine=lean_up, arms=0.6 * lean_up)
     plan.pose(t4, _PELVIS_AHEAD, 0.0, stand)
     return t4
 
 
-def _slide(plan: _Plan, seat: SeatParams, start: tuple[float, float], end: tuple[float, float], pitch: float,
-           gait: GaitParams, skel: _Skeleton) -> None:
-    """Pelvis keys (``s``, ``z``) between two seated keyframes ``(time, s)``, at the seated height
-    of each: the height that keeps the thighs on the seat is not linear in ``s``, and a spline
-    through the ends alone sank them ~1 cm into it."""
-    for u in (0.25, 0.5, 0.75):
-        s = start[1] + u * (end[1] - start[1])
-        when = start[0] + u * (end[0] - start[0])
-        plan.key("s", when, s)
-        plan.key("z", when, _seated_height(seat, 0.0, s, pitch, gait, skel))
-
-
-def _perched_positions(seat: SeatParams, seated_s: float, pitch: float, leans: tuple[float, ...], gait: GaitParams,
+def _perched_positions(seat: SeatParams, pitch: float, leans: tuple[float, ...], gait: GaitParams,
                        skel: _Skeleton) -> list[tuple[float, float]]:
-    """Per spine lean in ``leans``, the pelvis (s, z) on the seat, at or in front of ``seated_s``,
-    from which the body can rise (and onto which it can lower itself) leaning so.
+    """Per spine lean in ``leans``, the pelvis (s, z) on the seat from which the body can rise
+    (and onto which it can lower itself) leaning so.
 
     For each lean, the first slide forward (1 cm steps, the pelvis kept
     :data:`_SEAT_EDGE_CLEARANCE` behind the seat's front) that puts the centre of mass
@@ -1081,7 +1069,7 @@ def _perched_positions(seat: SeatParams, seated_s: float, pitch: float, leans: t
     feet = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
             and model.body(model.geom_bodyid[g]).name in FEET]
     found: dict[float, tuple[float, float]] = {}
-    for pelvis_s in np.arange(seated_s, seat.front - _SEAT_EDGE_CLEARANCE + 1e-9, 0.01):
+    for pelvis_s in np.arange(seat.front - _PERCH_SCAN_DEPTH, seat.front - _SEAT_EDGE_CLEARANCE + 1e-9, 0.01):
         z = _seated_height(seat, 0.0, pelvis_s, pitch, gait, skel)
         for lean in leans:
             if lean in found:

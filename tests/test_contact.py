@@ -74,10 +74,10 @@ def test_kinematic_contacts_agree_with_ground_truth(name):
         if truth.any():
             # GT marks a foot from 5 mm off its support; a settling sole a little higher, or a
             # seated pelvis still slowing down, is the difference. The seat cue is a centre of
-            # mass that cannot balance on the feet: while the sitter slides onto and off the
-            # seat's front (~0.7 s each way) it keeps it over the feet, as a body must to lower
-            # or lift itself, so the seat's part in those frames is invisible to kinematics.
-            assert precision >= 0.9 and recall >= (0.95 if part == "foot" else 0.45), (part, precision, recall)
+            # mass that cannot balance on the feet: while the sitter lowers itself onto and
+            # lifts itself from the seat's front (~0.7 s each way) it keeps it over the feet, as
+            # a body must, so the seat's part in those frames is invisible to kinematics.
+            assert precision >= 0.9 and recall >= (0.95 if part == "foot" else 0.6), (part, precision, recall)
         else:
             assert not labels[:, idx].any(), f"{part} contacts where the clip has none"
     # No clip leans on its hands or back.
@@ -238,15 +238,23 @@ def test_seat_is_hinged_to_its_backrest():
     back = next(b for b in boxes if b.name == "backrest")
     seat = next(b for b in boxes if b.name == "seat")
     _, contacts = _kinematic(motion)
-    box = complete_support(contacts, [boxes[0], back]).boxes[0]
-    rear = box.center[0] - abs(box.rotation[0] @ box.half_size)  # levelled box: x extent
-    front_of_back = back.center[0] + back.half_size[0]
-    assert rear == pytest.approx(front_of_back, abs=1e-6)
-    assert seat.center[0] + seat.half_size[0] <= box.center[0] + abs(box.rotation[0] @ box.half_size) + 0.06
-    # A backrest beyond hinge_distance is left alone.
-    far = Box(center=back.center - [0.5, 0.0, 0.0], half_size=back.half_size, name="backrest")
-    loose = complete_support(contacts, [boxes[0], far]).boxes[0]
-    assert loose.center[0] - abs(loose.rotation[0] @ loose.half_size) > front_of_back + 0.05
+
+    def rear_and_front(box: Box) -> tuple[float, float]:
+        extent = abs(box.rotation[0] @ box.half_size)  # levelled box: x extent
+        return box.center[0] - extent, box.center[0] + extent
+
+    # The sitter perches on the seat's front: the contact patch alone ends well before the back.
+    alone = complete_support(contacts, [boxes[0]]).boxes[0]
+    rear_alone, front = rear_and_front(alone)
+    assert seat.center[0] + seat.half_size[0] <= front + 0.06
+    # A backrest within hinge_distance behind that patch is met; one beyond it is left alone.
+    config = CompletionConfig()
+    for gap, hinged in ((0.6 * config.hinge_distance, True), (config.hinge_distance + 0.1, False)):
+        moved = Box(center=back.center + [rear_alone - gap - back.half_size[0] - back.center[0], 0.0, 0.0],
+                    half_size=back.half_size, name="backrest")
+        rear, _ = rear_and_front(complete_support(contacts, [boxes[0], moved]).boxes[0])
+        front_of_back = moved.center[0] + moved.half_size[0]
+        assert rear == pytest.approx(front_of_back if hinged else rear_alone, abs=1e-6), gap
 
 
 # --------------------------------------------------------------------------- imminent contacts
