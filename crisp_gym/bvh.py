@@ -394,10 +394,23 @@ def detect_unit_scale(skeleton: BvhSkeleton, mapping: Mapping[str, int]) -> floa
     return KNOWN_UNITS[name]
 
 
+def detect_up_axis(skeleton: BvhSkeleton, mapping: Mapping[str, int]) -> str:
+    """The file's up axis (``x``, ``y`` or ``z``): the one its rest pose's hips-to-head line
+    runs along (every BVH rests standing)."""
+    rest = skeleton.rest_positions()
+    rise = rest[mapping["Head"]] - (rest[mapping["L_Hip"]] + rest[mapping["R_Hip"]]) / 2
+    axis = int(np.argmax(np.abs(rise)))
+    if rise[axis] <= 0 or abs(rise[axis]) < 0.8 * np.linalg.norm(rise):
+        raise ValueError(f"cannot tell the BVH's up axis: its rest pose runs from the hips to the head "
+                         f"along {np.round(rise / np.linalg.norm(rise), 2)}, not up one of +x, +y, +z. "
+                         f"Pass up_axis.")
+    return "xyz"[axis]
+
+
 def _file_to_ours(skeleton: BvhSkeleton, mapping: Mapping[str, int], up_axis: str) -> np.ndarray:
     """(3, 3) rotation from file axes to ours: up -> z, the rest body's facing -> x."""
     if up_axis not in ("x", "y", "z"):
-        raise ValueError(f"up_axis must be 'x', 'y' or 'z', got {up_axis!r}")
+        raise ValueError(f"up_axis must be 'x', 'y', 'z' or 'auto', got {up_axis!r}")
     up = np.eye(3)["xyz".index(up_axis)]
     rest = skeleton.rest_positions()
     left = rest[mapping["L_Hip"]] - rest[mapping["R_Hip"]]
@@ -487,6 +500,7 @@ class BvhRetarget:
         ground_offset: (T,) metres added to each frame's root height to put the feet on the
             floor: a slowly varying correction where the capture's floor drifts, constant
             when grounded without ``grounding``.
+        up_axis: the file's up axis used (given, or detected).
     """
 
     motion: Motion
@@ -496,16 +510,18 @@ class BvhRetarget:
     clipped_fraction: float
     max_clip_deg: float
     ground_offset: np.ndarray
+    up_axis: str
 
 
-def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str = "y",
+def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str = "auto",
                  joint_map: Mapping[str, str] | None = None, clip_to_range: bool = True,
                  model: mujoco.MjModel | None = None,
                  grounding: StanceGrounding | None = StanceGrounding(),
                  low_pass_hz: float | None = 6.0) -> BvhRetarget:
     """Retarget a parsed BVH onto the humanoid (see the module docstring for the method).
 
-    ``joint_map`` (our body -> BVH joint name) replaces the built-in tables; ``model`` is the
+    ``up_axis`` is the file's up axis (``x``, ``y``, ``z``; ``auto`` detects it, see
+    :func:`detect_up_axis`). ``joint_map`` (our body -> BVH joint name) replaces the built-in tables; ``model`` is the
     humanoid used for grounding (the default 1.70 m one when ``None``). ``grounding`` lays the
     planted feet flat (:func:`~crisp_gym.motion.level_feet`) and puts them on the floor frame by
     frame (motion capture floors drift by centimetres over a take, see
@@ -521,6 +537,8 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
         unit_scale = detect_unit_scale(skeleton, mapping)
     elif not np.isfinite(unit_scale) or unit_scale <= 0:
         raise ValueError(f"unit_scale must be a positive number of metres per BVH unit, got {unit_scale}")
+    if up_axis == "auto":
+        up_axis = detect_up_axis(skeleton, mapping)
     to_ours = _file_to_ours(skeleton, mapping, up_axis)
     align = rest_alignment(skeleton, mapping, to_ours)
 
@@ -560,15 +578,15 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
         log.info("BVH retarget clipped %.2f%% of hinge values into range (at most %.1f deg)",
                  100 * clipped_fraction, max_clip)
     return BvhRetarget(grounded, float(unit_scale), {b: skeleton.names[k] for b, k in mapping.items()},
-                       to_ours, clipped_fraction, max_clip, offset)
+                       to_ours, clipped_fraction, max_clip, offset, up_axis)
 
 
-def load_bvh(path: str | Path, *, unit_scale: float | None = None, up_axis: str = "y",
+def load_bvh(path: str | Path, *, unit_scale: float | None = None, up_axis: str = "auto",
              target_fps: float | None = None) -> Motion:
     """A BVH file as a grounded humanoid :class:`Motion`, resampled to ``target_fps`` if given.
 
     ``unit_scale`` is metres per file unit (guessed from the leg length when ``None``);
-    ``up_axis`` is the file's up axis. Use :func:`parse_bvh` and :func:`retarget_bvh` to see
+    ``up_axis`` is the file's up axis (``auto``: detected). Use :func:`parse_bvh` and :func:`retarget_bvh` to see
     the unit, clipping and grounding that were applied.
     """
     motion = retarget_bvh(parse_bvh(path), unit_scale=unit_scale, up_axis=up_axis).motion

@@ -1,87 +1,235 @@
-"""``crisp import-motion FILE --name NAME``: a flat-ground clip from a motion file.
+"""``crisp import-motion FILE_OR_FOLDER --name NAME``: flat-ground clips from motion files.
 
-Reads a BVH (retargeted onto the humanoid), SMPL-style axis-angle parameters (``.npz`` with
-``global_orient``/``body_pose``/``transl``) or a ``motion.npz``, grounds it, writes a clip
-(flat floor + the motion) and registers it in the user registry.
+Each file becomes a clip (flat floor + the motion) registered in the user registry; a folder
+becomes one clip per motion file in it, named ``NAME_<file stem>``. Formats, told apart by
+extension and by the arrays an npz holds:
+
+==================  =================================================================================
+format              recognised by
+==================  =================================================================================
+BVH                 ``.bvh`` (retargeted onto the humanoid, see :mod:`crisp_gym.bvh`)
+AMASS               ``.npz`` with ``poses`` (T,72/156/165) and ``trans``; frame rate ``mocap_framerate``
+SMPL parameters     ``.npz`` with ``global_orient``, ``body_pose``, ``transl`` (GVHMR and others)
+PHC / SMPLSim       ``.npz`` with ``pose_aa`` (T,24,3) and ``trans`` (our ``smpl`` export)
+BeyondMimic/mjlab   ``.npz`` with ``joint_pos``, ``body_pos_w``, ``body_quat_w``, ``fps``
+``fields``/``qpos``  ``.npz`` of ``crisp export --format npz``
+``motion.npz``      ``.npz`` with ``root_pos``, ``root_quat``, ``dof_pos`` (a clip's own motion)
+CSV                 ``.csv`` of ``crisp export --format csv``
+==================  =================================================================================
+
+The source frame rate is the file's own (``--source-fps`` overrides it, and is needed for SMPL
+parameter files that carry none); the clip is resampled to ``--fps``. The up axis of BVH and
+SMPL-family files is detected unless given (:func:`crisp_gym.bvh.detect_up_axis`,
+:func:`crisp_gym.smpl.detect_up_axis`) and reported. Every import is grounded frame by frame from
+its planted feet (:func:`crisp_gym.motion.ground_stance`; captures also get their planted feet
+laid flat, :func:`crisp_gym.motion.level_feet`), or by one offset with ``--grounding constant``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import re
+import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
+import mujoco
 import numpy as np
 import platformdirs
 import tyro
+from tqdm.auto import tqdm
 
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
-from crisp_gym.motion import Motion, ground
-from crisp_gym.registry import register_clip
+from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, level_feet
+from crisp_gym.registry import check_clip_name, register_clip
 from crisp_gym.scene import floor_box
+
+MOTION_SUFFIXES = (".bvh", ".npz", ".csv")
+"""File types a folder import picks up."""
+
+Grounding = Literal["stance", "constant"]
+_FLAT_GROUND_SPREAD = 0.10  # m: per-frame grounding shifts beyond this are more than a capture's floor drift
+UpAxis = Literal["auto", "x", "y", "z"]
 
 
 @dataclass(frozen=True)
 class ImportMotionArgs:
-    """Make a flat-ground clip from a motion file and register it."""
+    """Make flat-ground clips from motion files and register them."""
 
     file: Annotated[Path, tyro.conf.Positional]
-    """BVH, SMPL-parameter npz or motion.npz."""
+    """A motion file (module docstring for the formats), or a folder of them."""
     name: str
-    """Registered clip name."""
+    """Registered clip name; for a folder, the prefix of ``NAME_<file stem>``."""
     output: Annotated[Path | None, tyro.conf.arg(aliases=["-o"])] = None
-    """Clip directory (default: the user data dir's clips/NAME)."""
+    """Clip directory (default: the user data dir's clips/NAME); for a folder, the parent of the clips."""
     fps: float = 30.0
     """Frame rate of the written motion."""
-    smpl_fps: float = 30.0
-    """Frame rate of SMPL parameter files (they carry none)."""
-    up_axis: str = "y"
-    """Up axis of BVH/SMPL input ("y" or "z")."""
+    source_fps: float | None = None
+    """Frame rate of the input (default: the file's own)."""
+    up_axis: UpAxis = "auto"
+    """Up axis of BVH and SMPL-family input (``auto``: detected and reported)."""
+    grounding: Grounding = "stance"
+    """``stance``: planted feet on the floor frame by frame; ``constant``: one vertical offset."""
     overwrite: bool = False
-    """Replace an existing clip directory."""
+    """Replace existing clip directories."""
 
 
-def read_motion(path: Path, fps: float, smpl_fps: float = 30.0, up_axis: str = "y") -> Motion:
-    """Load any supported motion file as a grounded :class:`Motion` at ``fps``."""
-    if not path.is_file():
-        raise FileNotFoundError(f"no motion file at {path}")
+@dataclass(frozen=True)
+class ReadMotion:
+    """A motion file read by :func:`read_motion`, with what was found and done.
+
+    Attributes:
+        motion: the grounded motion at the requested frame rate.
+        source_format: the detected format (module docstring).
+        source_fps: the input's frame rate (the file's own or the override).
+        up_axis: the input's up axis, or ``None`` for formats that are z-up by definition.
+        ground_shift: (min, max) metres added to the root height by grounding.
+    """
+
+    motion: Motion
+    source_format: str
+    source_fps: float
+    up_axis: str | None
+    ground_shift: tuple[float, float]
+
+    def describe(self) -> str:
+        """One line for the user: what was read and how it was grounded (and a warning when the
+        per-frame grounding moved the body by more than a capture's floor drift)."""
+        axis = f", {self.up_axis} up" if self.up_axis else ""
+        low, high = (100 * v for v in self.ground_shift)
+        shift = f"{low:+.1f} cm" if np.isclose(low, high, atol=0.05) else f"{low:+.1f} to {high:+.1f} cm"
+        line = (f"{self.source_format}{axis}, {self.source_fps:g} fps -> {self.motion.num_frames} frames at "
+                f"{self.motion.fps:g} fps, grounded by {shift}")
+        if high - low > 100 * _FLAT_GROUND_SPREAD:
+            line += (f"\n  warning: the planted feet's height varies by {high - low:.0f} cm; the clip's floor is "
+                     f"flat, so a motion on steps or slopes was flattened: use --grounding constant to keep it")
+        return line
+
+
+def _npz_keys(path: Path) -> set[str]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return set(data.files)
+    except (OSError, EOFError, ValueError, AttributeError) as err:
+        raise ValueError(f"{path} is not a readable npz archive ({err})") from None
+
+
+def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujoco.MjModel,
+                 grounding: StanceGrounding | None) -> tuple[Motion, str, str | None, np.ndarray | None]:
+    """The motion as the file has it, its format, its up axis and, for BVH (whose retarget
+    grounds as it lays the feet flat), the grounding offset already applied."""
     suffix = path.suffix.lower()
     if suffix == ".bvh":
-        from crisp_gym.bvh import load_bvh
+        from crisp_gym.bvh import parse_bvh, retarget_bvh
 
-        motion = load_bvh(path, up_axis=up_axis)
-    elif suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            keys = set(data.files)
-        if "dof_pos" in keys:
-            motion = Motion.load(path)
-        elif {"global_orient", "body_pose", "transl"} <= keys:
-            from crisp_gym.smpl import load_smpl_params
+        clip = parse_bvh(path)
+        if source_fps is not None:
+            clip = replace(clip, frame_time=1.0 / source_fps)
+        result = retarget_bvh(clip, up_axis=up_axis, model=model, grounding=grounding)
+        return result.motion, "BVH", result.up_axis, result.ground_offset
+    if suffix == ".csv":
+        from crisp_gym.export.motion_formats import read_motion_csv
 
-            motion = load_smpl_params(path, fps=smpl_fps, up_axis=up_axis)
-        else:
-            raise ValueError(f"{path}: an npz motion needs motion.npz keys (dof_pos, ...) or SMPL keys "
-                             f"(global_orient, body_pose, transl); found {sorted(keys)}")
-    else:
-        raise ValueError(f"{path}: unsupported motion file type {suffix!r} (expected .bvh or .npz)")
+        return read_motion_csv(path), "CSV", None, None
+    if suffix != ".npz":
+        raise ValueError(f"{path}: unsupported motion file type {suffix!r} (expected {', '.join(MOTION_SUFFIXES)})")
+    keys = _npz_keys(path)
+    if keys & {"global_orient", "poses", "pose_aa"}:
+        from crisp_gym.smpl import detect_up_axis, load_smpl_params, read_smpl_source, stored_fps
+
+        params = read_smpl_source(path)
+        if source_fps is None and stored_fps(params) is None:
+            raise ValueError(f"{path} carries no frame rate (no fps or mocap_framerate entry): pass --source-fps")
+        axis = detect_up_axis(params)[0] if up_axis == "auto" else up_axis
+        fmt = "AMASS" if "poses" in keys else "PHC SMPL" if "pose_aa" in keys else "SMPL parameters"
+        motion = load_smpl_params(params, fps=source_fps, up_axis=axis, to_floor=False)
+        return (motion if grounding is None else level_feet(motion, model, grounding)), fmt, axis, None
+    if {"root_pos", "root_quat", "dof_pos"} <= keys:
+        return Motion.load(path), "motion.npz", None, None
+    from crisp_gym.export.motion_formats import read_motion_npz
+
+    motion = read_motion_npz(path)
+    return motion, "BeyondMimic" if "joint_pos" in keys else "crisp npz", None, None
+
+
+def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, up_axis: str = "auto",
+                grounding: str = "stance", model: mujoco.MjModel | None = None) -> ReadMotion:
+    """Load any supported motion file (module docstring) as a grounded :class:`Motion` at ``fps``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no motion file at {path}")
+    for label, rate in (("fps", fps), ("source fps", source_fps)):
+        if rate is not None and not (np.isfinite(rate) and 0 < rate <= 1000):
+            raise ValueError(f"{label} must be a frame rate in (0, 1000], got {rate}")
+    if grounding not in ("stance", "constant"):
+        raise ValueError(f"grounding must be 'stance' or 'constant', got {grounding!r}")
+    model = model if model is not None else build_humanoid()
+    stance = StanceGrounding() if grounding == "stance" else None
+    motion, fmt, axis, offset = _read_source(path, source_fps, up_axis, model, stance)
+    if source_fps is not None:
+        motion = replace(motion, fps=source_fps)
+    rate = motion.fps
     motion = motion.resample(fps)
-    # The BVH loader already grounds per frame from the stance feet; a second, constant grounding
-    # would lift the whole clip onto its single lowest frame.
-    return motion if suffix == ".bvh" else ground(motion, build_humanoid())
+    if offset is None:
+        grounded = ground(motion, model) if stance is None else ground_stance(motion, model, stance)
+        offset = grounded.root_pos[:, 2] - motion.root_pos[:, 2]
+        motion = grounded
+    return ReadMotion(motion, fmt, rate, axis, (float(offset.min()), float(offset.max())))
 
 
-def import_motion(args: ImportMotionArgs) -> Path:
-    motion = read_motion(args.file, args.fps, args.smpl_fps, args.up_axis)
-    out = args.output or Path(platformdirs.user_data_dir("crisp-gym")) / "clips" / args.name
-    meta = {"name": args.name, "source": "import-motion", "input": str(args.file.resolve()), "fps": motion.fps}
-    write_clip(out, [floor_box()], motion, meta, overwrite=args.overwrite)
-    registry = register_clip(args.name, out, tags=["imported", "flat"])
-    print(f"wrote clip '{args.name}' ({motion.num_frames} frames at {motion.fps:g} fps) to {out}\n"
-          f"registered in {registry}")
-    return out
+def clip_name_for(prefix: str, file: Path) -> str:
+    """``PREFIX_<stem>`` with every character but letters, digits, ``-``, ``_`` and ``.`` made ``_``."""
+    return f"{prefix}_{re.sub(r'[^A-Za-z0-9_.-]', '_', file.stem)}"
+
+
+def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
+                model: mujoco.MjModel) -> ReadMotion:
+    """Read ``file``, write it as clip ``name`` at ``output`` and register it."""
+    read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model)
+    meta = {"name": name, "source": "import-motion", "input": str(file.resolve()), "fps": read.motion.fps,
+            "source_format": read.source_format, "source_fps": read.source_fps, "up_axis": read.up_axis,
+            "grounding": args.grounding}
+    write_clip(output, [floor_box()], read.motion, meta, overwrite=args.overwrite)
+    register_clip(name, output, tags=["imported", "flat"])
+    return read
+
+
+def import_motion(args: ImportMotionArgs) -> list[Path]:
+    """Run ``crisp import-motion``; returns the clip directories written."""
+    check_clip_name(args.name)
+    clips_dir = Path(platformdirs.user_data_dir("crisp-gym")) / "clips"
+    model = build_humanoid()
+    if not args.file.is_dir():
+        out = args.output or clips_dir / args.name
+        read = import_file(args.file, args.name, out, args, model)
+        print(f"read {args.file.name}: {read.describe()}\nwrote clip '{args.name}' to {out}")
+        return [out]
+    files = sorted(f for f in args.file.iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES)
+    if not files:
+        raise FileNotFoundError(f"{args.file} holds no motion files ({', '.join(MOTION_SUFFIXES)})")
+    written, failed = [], []
+    for file in tqdm(files, desc="import", unit="file"):
+        name = clip_name_for(args.name, file)
+        out = (args.output or clips_dir) / name
+        try:
+            read = import_file(file, name, out, args, model)
+        except (ValueError, FileNotFoundError, FileExistsError) as err:
+            failed.append(f"{file.name}: {err}")
+            continue
+        tqdm.write(f"{name}: {read.describe()}")
+        written.append(out)
+    print(f"imported {len(written)} of {len(files)} files from {args.file}")
+    if failed:
+        raise ValueError("not imported:\n  " + "\n  ".join(failed))
+    return written
 
 
 def main(argv: list[str] | None = None) -> int:
-    import_motion(tyro.cli(ImportMotionArgs, args=argv, prog="crisp import-motion"))
+    args = tyro.cli(ImportMotionArgs, args=argv, prog="crisp import-motion")
+    try:
+        import_motion(args)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"crisp import-motion: {err}", file=sys.stderr)
+        return 2
     return 0

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d, minimum_filter1d
 from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -36,6 +36,8 @@ def _low_pass(x: np.ndarray, sigma: float) -> np.ndarray:
 # Passes that lower the stance floor by its low-passed excess over the feet before the final
 # envelope: on CMU 131_01-03 five halve the stance frames the envelope alone leaves floating.
 _UNDERCUT_PASSES = 5
+_STANCE_WINDOW = 0.5  # s each side: how far around a frame a planted foot's lowest height is sought
+_STANCE_LIFT = 0.05  # m: a still foot this far above that height is in the air, not planted
 
 
 def _as_names(names, expected_len: int, what: str) -> tuple[str, ...]:
@@ -378,8 +380,10 @@ class StanceGrounding:
 
     Attributes:
         stance_speed: m/s. A foot is planted while its ankle and toe joints both move
-            horizontally slower than this (velocity-threshold contact detection, as gait
-            analysis detects foot contacts; a planted foot's joints barely move).
+            slower than this (velocity-threshold contact detection, as gait analysis detects
+            foot contacts; a planted foot's joints barely move), within 5 cm of their lowest
+            height of the surrounding second (a jumping foot also stands still, at the top of
+            its flight).
         smoothing: s. Standard deviation of the Gaussian low-pass applied to the floor
             estimate (half power at about 0.13 / smoothing Hz), so the correction follows drift
             over steps and postures without adding jitter from frame-to-frame foot noise.
@@ -406,8 +410,14 @@ def planted_feet(motion: Motion, model: mujoco.MjModel, stance_speed: float = 0.
     """(T, 2) bool: whether the left / right foot is planted (see :class:`StanceGrounding`)."""
     kin = compute_kinematics(motion, model)
     ids = [BODY_NAMES.index(name) for name in FEET]
-    speed = np.linalg.norm(kin.body_lin_vel[:, ids, :2], axis=-1)  # (T, 4): L ankle, L toe, R ankle, R toe
-    return np.stack([speed[:, :2].max(axis=1), speed[:, 2:].max(axis=1)], axis=1) < stance_speed
+    speed = np.linalg.norm(kin.body_lin_vel[:, ids], axis=-1)  # (T, 4): L ankle, L toe, R ankle, R toe
+    still = np.stack([speed[:, :2].max(axis=1), speed[:, 2:].max(axis=1)], axis=1) < stance_speed
+    # A foot also stands still at the top of a jump: a planted one is near its lowest height
+    # of the surrounding second.
+    height = kin.body_pos[:, ids, 2]
+    low = np.stack([height[:, :2].min(axis=1), height[:, 2:].min(axis=1)], axis=1)
+    window = 2 * int(round(_STANCE_WINDOW * motion.fps)) + 1
+    return still & (low - minimum_filter1d(low, window, axis=0, mode="nearest") < _STANCE_LIFT)
 
 
 def stance_floor(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding()) -> np.ndarray:

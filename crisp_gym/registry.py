@@ -14,6 +14,7 @@ relative to the registry file.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import platformdirs
@@ -22,6 +23,7 @@ import yaml
 from crisp_gym.clip import Clip, load_clip_dir
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
+_CLIP_NAME = re.compile(r"\w[\w.+-]*")
 BUNDLED_REGISTRY = PROJECT_ROOT / "registry.yaml"
 
 
@@ -102,11 +104,20 @@ def load_clip(name_or_path: str | os.PathLike) -> Clip:
     return load_clip_dir(resolve_clip(name_or_path))
 
 
+def check_clip_name(name: str) -> str:
+    """``name`` if it is a plain clip name, else ValueError: letters, digits and ``_``, then also
+    ``.``, ``+`` and ``-`` (no whitespace, path separator or leading dot, so a name can never
+    point outside the clips folder)."""
+    if not isinstance(name, str) or not _CLIP_NAME.fullmatch(name):
+        raise ValueError(f"clip names must be plain names (a letter, digit or '_', then also '.', '+', '-'), "
+                         f"got {name!r}")
+    return name
+
+
 def register_clip(name: str, path: str | Path, tags: list[str] | None = None,
                   registry: Path | None = None) -> Path:
     """Add (or replace) a clip in the user registry; returns the registry file."""
-    if not name or any(c.isspace() for c in name):
-        raise ValueError(f"clip names must be non-empty without whitespace, got {name!r}")
+    check_clip_name(name)
     registry = registry or user_registry_path()
     content = yaml.safe_load(registry.read_text()) if registry.is_file() else None
     content = content or {}

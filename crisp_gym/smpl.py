@@ -1,5 +1,11 @@
 """SMPL pose parameters (axis-angle ``global_orient``, ``body_pose``, ``transl``) <-> :class:`Motion`.
 
+Three layouts of the same parameters are read: SMPL's own (``global_orient`` (T,3),
+``body_pose`` (T,69 or T,63), ``transl``), AMASS's (``poses`` (T,72) SMPL, (T,156) SMPL-H or
+(T,165) SMPL-X, of which the root and the 21 body joints are used; ``trans``;
+``mocap_framerate``; z-up) and the PHC / SMPLSim one (``pose_aa`` (T,24,3), ``trans``). Entries
+that would need pickles to load (AMASS's ``gender`` is sometimes one) are skipped: none is used.
+
 SMPL's joints map to our bodies by name (:data:`SMPL_TO_BODY`); its body frame (y up,
 facing +z, x to the body's left) becomes ours (z up, facing +x, left +y) by the fixed
 change of basis :data:`SMPL_TO_OURS` applied to every local rotation (``C R Cᵀ``). Both
@@ -49,10 +55,15 @@ def _world_to_ours(up_axis: str) -> np.ndarray:
         return SMPL_TO_OURS
     if up_axis == "z":
         return np.eye(3)
-    raise ValueError(f"up_axis must be 'y' (SMPL's own world) or 'z' (already z-up), got {up_axis!r}")
+    raise ValueError(f"up_axis must be 'y' (SMPL's own world), 'z' (already z-up) or 'auto', got {up_axis!r}")
 
 
-def _read(source: str | Path | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+UP_AXES = ("y", "z")
+"""World up axes of SMPL inputs: ``y`` (SMPL's own world) or ``z`` (AMASS, PHC)."""
+
+
+def read_smpl_source(source: str | Path | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays of SMPL parameters: an npz path (entries that need pickles skipped) or a dict."""
     if isinstance(source, Mapping):
         return {k: np.asarray(v) for k, v in source.items()}
     path = Path(source)
@@ -67,11 +78,62 @@ def _read(source: str | Path | Mapping[str, np.ndarray]) -> dict[str, np.ndarray
         raise ValueError(f"{path} holds a single array; expected an npz with global_orient, "
                          "body_pose and transl")
     with data:
-        return {k: data[k] for k in data.files}
+        return {k: data[k] for k in data.files if not _needs_pickle(data, k)}
+
+
+def _needs_pickle(data: np.lib.npyio.NpzFile, key: str) -> bool:
+    try:
+        data[key]
+    except ValueError:  # an object array: loading it would run a pickle
+        return True
+    return False
+
+
+def _standard_keys(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``params`` with the AMASS (``poses``, ``trans``) or PHC (``pose_aa``, ``trans``) layout
+    renamed to SMPL's ``global_orient``, ``body_pose``, ``transl``."""
+    out = dict(params)
+    if "transl" not in out and "trans" in out:
+        out["transl"] = out["trans"]
+    if "global_orient" in out or "body_pose" in out:
+        return out
+    if "pose_aa" in out:
+        pose = np.asarray(out["pose_aa"])
+        if pose.ndim != 3 or pose.shape[1:] != (24, 3):
+            raise ValueError(f"SMPL pose_aa must have shape (T, 24, 3), got {pose.shape}")
+        out["global_orient"], out["body_pose"] = pose[:, 0], pose[:, 1:].reshape(len(pose), 69)
+    elif "poses" in out:
+        pose = np.asarray(out["poses"])
+        if pose.ndim != 2 or pose.shape[1] not in _AMASS_WIDTHS:
+            raise ValueError(f"AMASS poses must have shape (T, 72) (SMPL), (T, 156) (SMPL-H) or (T, 165) "
+                             f"(SMPL-X), got {pose.shape}")
+        # SMPL's 23 joints; SMPL-H and SMPL-X have 21 body joints then jaw, eyes and fingers.
+        out["global_orient"], out["body_pose"] = pose[:, :3], pose[:, 3:72 if pose.shape[1] == 72 else 66]
+    return out
+
+
+_AMASS_WIDTHS = (72, 156, 165)
+
+
+def detect_up_axis(params: Mapping[str, np.ndarray]) -> tuple[str, dict[str, float]]:
+    """The world up axis of SMPL parameters (:data:`UP_AXES`), and per axis the mean
+    uprightness it gives (the pelvis' up axis dotted with the world's, -1..1).
+
+    The axis that keeps the pelvis most upright over the clip wins: people stand, walk, sit
+    and squat with the pelvis upright; only a clip spent lying down leaves it ambiguous.
+    """
+    orient = np.asarray(_standard_keys(params).get("global_orient", np.zeros((0, 3))), dtype=float)
+    if orient.ndim != 2 or orient.shape[1] != 3 or not len(orient) or not np.isfinite(orient).all():
+        raise ValueError("the up axis is detected from global_orient (T, 3) finite values; "
+                         f"got {orient.shape}")
+    pelvis_up = Rotation.from_rotvec(orient).as_matrix() @ SMPL_TO_OURS.T[:, 2]  # the body's up in the file's world
+    score = {axis: float((_world_to_ours(axis) @ pelvis_up.T)[2].mean()) for axis in UP_AXES}
+    return max(score, key=score.get), score
 
 
 def _checked(params: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(T,3) global_orient, (T,23,3) body_pose, (T,3) transl, validated."""
+    params = _standard_keys(params)
     missing = [k for k in ("global_orient", "body_pose", "transl") if k not in params]
     if missing:
         raise ValueError(f"SMPL parameters lack {missing}; expected global_orient (T,3), "
@@ -100,21 +162,35 @@ def _checked(params: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, 
     return orient, pose.reshape(t, 23, 3), transl
 
 
+def stored_fps(params: Mapping[str, np.ndarray]) -> float | None:
+    """The frame rate SMPL parameters carry (``fps`` or AMASS's ``mocap_framerate``), if any."""
+    for key in ("fps", "mocap_framerate"):
+        if key in params:
+            value = np.asarray(params[key])
+            if value.size != 1 or not np.issubdtype(value.dtype, np.number):
+                raise ValueError(f"SMPL {key} must be one number, got {value!r}")
+            return float(value.reshape(()))
+    return None
+
+
 def load_smpl_params(source: str | Path | Mapping[str, np.ndarray], *, fps: float | None = None,
                      up_axis: str = "y", to_floor: bool = True,
                      model: mujoco.MjModel | None = None) -> Motion:
-    """A humanoid :class:`Motion` from SMPL axis-angle parameters (an npz path or a dict).
+    """A humanoid :class:`Motion` from SMPL axis-angle parameters (an npz path or a dict) in
+    any layout of the module docstring.
 
     ``fps`` defaults to the source's ``fps`` or ``mocap_framerate`` entry, else 30.
     ``up_axis="y"`` is SMPL's own world (y up); ``"z"`` means the world is already z-up and
-    only the body frame is converted. ``to_floor`` grounds the result on ``model`` (the default
-    humanoid when ``None``); see the module docstring for how ``transl`` is treated.
+    only the body frame is converted; ``"auto"`` takes :func:`detect_up_axis`'s choice.
+    ``to_floor`` grounds the result on ``model`` (the default humanoid when ``None``) by one
+    offset; see the module docstring for how ``transl`` is treated.
     """
-    params = _read(source)
+    params = read_smpl_source(source)
+    if up_axis == "auto":
+        up_axis, _ = detect_up_axis(params)
     world = _world_to_ours(up_axis)
     if fps is None:
-        stored = next((params[k] for k in ("fps", "mocap_framerate") if k in params), 30.0)
-        fps = float(np.asarray(stored).reshape(()))
+        fps = stored_fps(params) or 30.0
     orient, pose, transl = _checked(params)
     t = orient.shape[0]
     rotvecs = np.concatenate([orient[:, None], pose], axis=1)  # (T, 24, 3) in SMPL order

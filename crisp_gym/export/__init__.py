@@ -21,6 +21,10 @@ format           files                               for
 ``npz``          ``motion/motion_fields.npz``,       Isaac-style per-field arrays; MuJoCo qpos/qvel
                  ``motion/motion_qpos.npz``
 ``smpl``         ``motion/motion_smpl.npz``          SMPL trackers (``pose_aa``/``trans`` at 30 fps)
+``amass``        ``motion/motion_amass.npz``         AMASS readers: ProtoMotions, PHC converters
+                                                     (``poses``/``trans``/``betas`` at 30 fps, z up)
+``beyondmimic``  ``motion/motion_beyondmimic.npz``   BeyondMimic / mjlab tracking (joint and world
+                                                     body states with velocities)
 ``onnx``         ``policy/policy.onnx``, ``.json``   onnxruntime on the robot
 ``torchscript``  ``policy/policy.pt``, ``.json``     libtorch / PyTorch without this package
 ===============  ==================================  ===========================================================
@@ -46,9 +50,10 @@ from crisp_gym.export.motion_formats import write_motion_csv, write_motion_npz
 from crisp_gym.export.urdf import UrdfConfig, write_urdf
 from crisp_gym.registry import load_clip
 
-Format = Literal["all", "mjcf", "mjx", "dm_control", "urdf", "glb", "obj", "csv", "npz", "smpl", "onnx",
-                 "torchscript"]
-CLIP_FORMATS: tuple[str, ...] = ("mjcf", "mjx", "dm_control", "urdf", "glb", "obj", "csv", "npz", "smpl")
+Format = Literal["all", "mjcf", "mjx", "dm_control", "urdf", "glb", "obj", "csv", "npz", "smpl", "amass",
+                 "beyondmimic", "onnx", "torchscript"]
+CLIP_FORMATS: tuple[str, ...] = ("mjcf", "mjx", "dm_control", "urdf", "glb", "obj", "csv", "npz", "smpl", "amass",
+                                 "beyondmimic")
 POLICY_FORMATS: tuple[str, ...] = ("onnx", "torchscript")
 
 
@@ -113,9 +118,11 @@ def export_clip(clip: Clip, output: str | Path, formats: tuple[str, ...], config
         elif fmt == "npz":
             written += [write_motion_npz(clip.motion, output / "motion" / f"motion_{layout}.npz", layout,
                                          config.quat_order) for layout in ("fields", "qpos")]
-        else:  # smpl
+        elif fmt == "smpl":
             written.append(write_motion_npz(clip.motion, output / "motion" / "motion_smpl.npz", "smpl",
                                             up_axis=config.smpl_up_axis))
+        else:  # amass, beyondmimic
+            written.append(write_motion_npz(clip.motion, output / "motion" / f"motion_{fmt}.npz", fmt))
     return written
 
 

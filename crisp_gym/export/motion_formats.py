@@ -20,14 +20,24 @@ CSV                one row per frame: ``frame, time, root_pos_{x,y,z}``, ``root_
 ``smpl`` npz       ``pose_aa`` (T,24,3) axis-angle per SMPL joint (SMPL's joint order, names in
                    ``joint_names``), ``trans`` (T,3) the pelvis position, ``fps`` = 30, ``up_axis``
                    (PHC / SMPLSim style; ``pose_aa.reshape(T, 72)`` is their flat layout)
+``amass`` npz      ``poses`` (T,72) axis-angle (root then SMPL's 23 joints, SMPL's order), ``trans``
+                   (T,3) the pelvis position in a z-up world, ``betas`` (16,) zeros, ``gender``
+                   ``"neutral"``, ``mocap_framerate`` = 30 (the AMASS file the ProtoMotions and PHC
+                   converters read)
+``beyondmimic``    ``fps`` (1,); ``joint_pos``, ``joint_vel`` (T,69) in ``joint_names`` order;
+npz                ``body_pos_w``, ``body_quat_w`` (w x y z), ``body_lin_vel_w``, ``body_ang_vel_w``
+                   (T,24,·, world frame) in ``body_names`` order, the pelvis (root) first; the
+                   motion's own frame rate (BeyondMimic / mjlab motion tracking)
 =================  ==================================================================================
 
 ``root_rot`` is deliberately not named ``root_quat``: :meth:`crisp_gym.motion.Motion.load` refuses
 the file instead of silently reading an ``xyzw`` quaternion as ``wxyz``.
 
-SMPL: our bodies map to SMPL's joints by name and our body axes to SMPL's by the fixed basis change
-of :mod:`crisp_gym.smpl`; ``trans`` is the pelvis position (SMPL adds a shape-dependent offset that
-only the user's betas define), so :func:`crisp_gym.smpl.load_smpl_params` reads the file back.
+SMPL and AMASS: our bodies map to SMPL's joints by name and our body axes to SMPL's by the fixed
+basis change of :mod:`crisp_gym.smpl`; ``trans`` is the pelvis position (SMPL adds a shape-dependent
+offset that only the user's betas define: with the zero ``betas`` written, an SMPL body model puts
+its pelvis about 0.22 m off ``trans``, mostly along the body's up axis), so
+:func:`crisp_gym.smpl.load_smpl_params` reads the files back.
 """
 
 from __future__ import annotations
@@ -45,7 +55,7 @@ from crisp_gym.motion import Motion, compute_kinematics, hinge_angles_to_rotatio
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS
 
 QUAT_ORDERS = ("wxyz", "xyzw")
-NPZ_LAYOUTS = ("fields", "qpos", "smpl")
+NPZ_LAYOUTS = ("fields", "qpos", "smpl", "amass", "beyondmimic")
 SMPL_FPS = 30.0
 """Frame rate of the SMPL layout (the rate of the AMASS-derived data the SMPL trackers train on)."""
 
@@ -169,12 +179,51 @@ def smpl_layout(motion: Motion, up_axis: str = "z") -> dict:
             "joint_names": np.array(SMPL_JOINT_NAMES), "up_axis": np.array(up_axis)}
 
 
+def amass_layout(motion: Motion) -> dict:
+    """The ``amass`` arrays (module docstring), resampled to :data:`SMPL_FPS`."""
+    smpl = smpl_layout(motion, "z")
+    t = smpl["pose_aa"].shape[0]
+    return {"poses": smpl["pose_aa"].reshape(t, 72), "trans": smpl["trans"], "betas": np.zeros(16),
+            "gender": np.array("neutral"), "mocap_framerate": np.float64(SMPL_FPS)}
+
+
+def beyondmimic_layout(motion: Motion, model: mujoco.MjModel | None = None) -> dict:
+    """The ``beyondmimic`` arrays (module docstring); body states by forward kinematics on ``model``."""
+    m = motion.in_humanoid_order()
+    kin = compute_kinematics(m, model if model is not None else build_humanoid(HumanoidConfig()))
+    return {
+        "fps": np.array([m.fps]), "joint_pos": m.dof_pos, "joint_vel": m.qvel()[:, 6:],
+        "joint_names": np.array(DOF_NAMES), "body_names": np.array(BODY_NAMES),
+        "body_pos_w": kin.body_pos, "body_quat_w": kin.body_quat,
+        "body_lin_vel_w": kin.body_lin_vel, "body_ang_vel_w": kin.body_ang_vel,
+    }
+
+
+def read_beyondmimic(data: dict[str, np.ndarray], source: str = "motion") -> Motion:
+    """A :class:`Motion` from ``beyondmimic`` arrays: the root from the first body's pose, the
+    hinges from ``joint_pos`` (reordered by ``joint_names`` when given, else in our order)."""
+    missing = [k for k in ("fps", "joint_pos", "body_pos_w", "body_quat_w") if k not in data]
+    if missing:
+        raise ValueError(f"{source}: a BeyondMimic motion needs fps, joint_pos, body_pos_w and body_quat_w; "
+                         f"lacks {missing}")
+    body_pos, body_quat = np.asarray(data["body_pos_w"]), np.asarray(data["body_quat_w"])
+    if body_pos.ndim != 3 or body_quat.ndim != 3 or body_pos.shape[-1] != 3 or body_quat.shape[-1] != 4:
+        raise ValueError(f"{source}: body_pos_w must be (T, B, 3) and body_quat_w (T, B, 4), got "
+                         f"{body_pos.shape} and {body_quat.shape}")
+    if "body_names" in data and str(data["body_names"][0]) != BODY_NAMES[0]:
+        raise ValueError(f"{source}: the first body must be the root {BODY_NAMES[0]!r}, got {data['body_names'][0]!r}")
+    names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in data else DOF_NAMES
+    return Motion(fps=float(np.asarray(data["fps"]).reshape(-1)[0]), root_pos=body_pos[:, 0],
+                  root_quat=body_quat[:, 0], dof_pos=np.asarray(data["joint_pos"]),
+                  dof_names=names).in_humanoid_order()
+
+
 def write_motion_npz(motion: Motion, path: str | Path, layout: str = "fields", quat_order: str = "wxyz",
                      up_axis: str = "z") -> Path:
     """Write ``motion`` in ``layout`` (:data:`NPZ_LAYOUTS`) atomically.
 
-    ``quat_order`` applies to the ``fields`` layout (``qpos`` is MuJoCo's, always w x y z);
-    ``up_axis`` to the ``smpl`` layout.
+    ``quat_order`` applies to the ``fields`` layout (``qpos`` and ``beyondmimic`` are always
+    w x y z); ``up_axis`` to the ``smpl`` layout (``amass`` is always z up).
     """
     if layout == "fields":
         arrays = fields_layout(motion, quat_order)
@@ -182,6 +231,10 @@ def write_motion_npz(motion: Motion, path: str | Path, layout: str = "fields", q
         arrays = qpos_layout(motion)
     elif layout == "smpl":
         arrays = smpl_layout(motion, up_axis)
+    elif layout == "amass":
+        arrays = amass_layout(motion)
+    elif layout == "beyondmimic":
+        arrays = beyondmimic_layout(motion)
     else:
         raise ValueError(f"layout must be one of {NPZ_LAYOUTS}, got {layout!r}")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -190,9 +243,9 @@ def write_motion_npz(motion: Motion, path: str | Path, layout: str = "fields", q
 
 
 def read_motion_npz(path: str | Path) -> Motion:
-    """A :class:`Motion` from a ``fields`` or ``qpos`` file of :func:`write_motion_npz`.
+    """A :class:`Motion` from a ``fields``, ``qpos`` or ``beyondmimic`` file of :func:`write_motion_npz`.
 
-    SMPL files are read by :func:`crisp_gym.smpl.load_smpl_params`.
+    SMPL and AMASS files are read by :func:`crisp_gym.smpl.load_smpl_params`.
     """
     path = Path(path)
     if not path.is_file():
@@ -208,5 +261,8 @@ def read_motion_npz(path: str | Path) -> Motion:
             return Motion(fps=data["fps"], root_pos=data["root_pos"],
                           root_quat=from_order(data["root_rot"], str(data["quat_order"])),
                           dof_pos=data["dof_pos"], dof_names=data["dof_names"]).in_humanoid_order()
-    raise ValueError(f"{path} is neither a 'qpos' (qpos, qpos_names, fps) nor a 'fields' (root_pos, root_rot, "
-                     f"quat_order, dof_pos, dof_names, fps) motion file; it has {sorted(keys)}")
+        if {"joint_pos", "body_pos_w", "body_quat_w"} <= keys:
+            return read_beyondmimic({k: data[k] for k in data.files}, str(path))
+    raise ValueError(f"{path} is neither a 'qpos' (qpos, qpos_names, fps), a 'fields' (root_pos, root_rot, "
+                     f"quat_order, dof_pos, dof_names, fps) nor a 'beyondmimic' (fps, joint_pos, body_pos_w, "
+                     f"body_quat_w) motion file; it has {sorted(keys)}")

@@ -1,0 +1,71 @@
+"""Motion import over real files: time, up axis, grounding of the planted feet, skating.
+
+Every motion file of a folder (default: the SMPL motions estimated from real videos in
+``../shared/data/asap_video_smpl``) is read as ``crisp import-motion`` reads it
+(:func:`crisp_gym.import_motion.read_motion`), once grounded frame by frame from the planted feet
+(the default) and once by one constant offset (the former behaviour), and a Markdown table is
+printed. Planted feet are those of :func:`crisp_gym.motion.planted_feet`; a foot's height is the
+lower of its ankle's and toe's sole points, and a frame's planted-foot height is that of its lowest
+planted foot. Target: median planted-foot height within 1 cm of the floor for every file.
+
+    python benchmarks/motion_import.py [FOLDER]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crisp_gym.humanoid import build_humanoid
+from crisp_gym.import_motion import MOTION_SUFFIXES, read_motion
+from crisp_gym.metrics import foot_skating, sole_points
+from crisp_gym.motion import Motion, planted_feet
+
+DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "asap_video_smpl"
+
+
+def planted_foot_heights(motion: Motion, model) -> tuple[np.ndarray, float]:
+    """Per frame with a planted foot, the height (m) of the lowest planted foot (the lower of its
+    ankle's and toe's soles; a raised foot held still counts as planted, the standing one is
+    lower), and the mean horizontal speed (m/s) of the planted feet's soles."""
+    planted = planted_feet(motion, model)  # (T, 2): left, right
+    soles = sole_points(model, motion.qpos())  # (T, 4, 3): L ankle, L toe, R ankle, R toe
+    height = np.where(planted, np.minimum(soles[:, 0::2, 2], soles[:, 1::2, 2]), np.inf).min(axis=1)
+    skating = foot_skating(soles, np.repeat(planted, 2, axis=1), motion.fps)
+    return height[np.isfinite(height)], skating.mean_speed
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path, nargs="?", default=DEFAULT_FOLDER)
+    args = parser.parse_args(argv)
+    files = sorted(f for f in args.folder.iterdir() if f.suffix.lower() in MOTION_SUFFIXES)
+    if not files:
+        raise SystemExit(f"no motion files in {args.folder}")
+    model = build_humanoid()
+    print("| file | frames | fps | up axis | import (s) | planted-foot height median, stance / constant (cm) "
+          "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) |")
+    print("|---|---|---|---|---|---|---|---|")
+    medians = []
+    for file in files:
+        start = time.perf_counter()
+        read = read_motion(file, model=model)
+        seconds = time.perf_counter() - start
+        constant = read_motion(file, grounding="constant", model=model)
+        h_stance, skating = planted_foot_heights(read.motion, model)
+        h_constant, _ = planted_foot_heights(constant.motion, model)
+        medians.append(np.median(np.abs(h_stance)))
+        print(f"| {file.name} | {read.motion.num_frames} | {read.source_fps:g} | {read.up_axis} | {seconds:.2f} "
+              f"| {100 * np.median(h_stance):.2f} / {100 * np.median(h_constant):.2f} "
+              f"| {100 * np.percentile(np.abs(h_stance), 90):.2f} / {100 * np.percentile(np.abs(h_constant), 90):.2f} "
+              f"| {100 * skating:.1f} |")
+    medians = np.array(medians)
+    print(f"\n{len(files)} files; median |planted-foot height| per file: median {100 * np.median(medians):.2f} cm, "
+          f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}")
+
+
+if __name__ == "__main__":
+    main()
