@@ -13,7 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("crisp_gym.demo", "run the demo on a bundled clip: rollout, report and video"),
     "clips": ("crisp_gym.clips_cli", "list the registered clips"),
     "import-motion": ("crisp_gym.import_motion", "make a flat-ground clip from a BVH/SMPL/motion.npz file"),
-    "synth-clips": ("reconstruct.synth", "regenerate the bundled synthetic clips"),
+    "synth-clips": ("reconstruct.synth", "regenerate the bundled synthetic clips, or make one more (--kind, --seed)"),
     "synth": ("reconstruct.synth_video", "render a synthetic depth video with ground truth"),
     "reconstruct": ("reconstruct.pipeline", "reconstruct a clip from a depth video and a human motion"),
     "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),

@@ -91,7 +91,7 @@ _STANCE_BODIES = (("L_Ankle", "L_Toe"), ("R_Ankle", "R_Toe"))
 _SEAT_BODIES = ("Pelvis", "L_Hip", "R_Hip")
 _SEAT_CONTACT_TOLERANCE = 0.005  # m: a thigh this close to the seat counts as resting on it
 _SEAT_OFF_SHARE = 0.45  # of a rise (a descent): on the seat, leaning, before (after) the feet bear the body
-_RISE_COM_MARGIN = 0.01  # m: centre of mass in front of the heels with the pelvis perched on the seat's front
+_RISE_COM_MARGIN = -0.02  # m: centre of mass in front of the heels (negative: behind) perched and leaning
 _SEAT_EDGE_CLEARANCE = 0.03  # m: the seated pelvis stays this far behind the seat's front
 _SEATED_SPINE = -0.15  # rad: the seated trunk leans back a little, its weight on the seat
 _PERCH_SCAN_DEPTH = 0.22  # m behind the seat's front: where the search for a perched pelvis starts
@@ -1022,9 +1022,12 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     singular and ab/adduction would swing wildly.
 
     The body lowers itself onto, stays on, and rises from the front of the seat, where under
-    the lean the centre of mass is over the feet (:func:`_perched_positions`). Sitting straight
-    back onto the seat and rising from it put the centre of mass 9-10 cm behind the heels (the
-    first generator): no ground force lowers or lifts a body from there without it falling.
+    the lean the centre of mass is just behind the heels (:func:`_perched_positions`,
+    :data:`_RISE_COM_MARGIN`; the pelvis already moves forward as the thighs leave the seat).
+    Sitting straight back onto the seat and rising from it put the centre of mass 9-10 cm
+    behind the heels (the first generator): no ground force lowers or lifts a body from there
+    without it falling. Perching further forward hides the seat from the kinematic contact cue,
+    which needs the seated centre of mass clearly behind the feet (docs/synthetic_clips.md).
     Sliding back on the seat and forward again before rising (the second) asked a simulated
     body to scoot 15 cm along a seat that holds it by friction: policies learned to skip the
     slide, and from a seated start they could not rise.
@@ -1059,7 +1062,7 @@ def _perched_positions(seat: SeatParams, pitch: float, leans: tuple[float, ...],
     """Per spine lean in ``leans``, the pelvis (s, z) on the seat from which the body can rise
     (and onto which it can lower itself) leaning so.
 
-    For each lean, the first slide forward (1 cm steps, the pelvis kept
+    For each lean, the first position forward (1 cm steps, the pelvis kept
     :data:`_SEAT_EDGE_CLEARANCE` behind the seat's front) that puts the centre of mass
     :data:`_RISE_COM_MARGIN` in front of the heels. One scan serves every lean: the seated
     height at each step (a bisection) is the costly part.
@@ -1233,16 +1236,40 @@ def bundle_clips(out_dir: Path = CLIPS_DIR, registry: Path = REGISTRY) -> dict[s
     return written
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Command line: regenerate the bundled clips and registry."""
+def main(argv: list[str] | None = None) -> int:
+    """Command line: regenerate the bundled clips and registry, or (``--kind``) generate one more
+    clip of a kind and seed and register it in the user registry."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out-dir", type=Path, default=CLIPS_DIR, help="where the clip directories go")
-    parser.add_argument("--registry", type=Path, default=REGISTRY, help="registry file to (re)write")
+    parser.add_argument("--out-dir", type=Path, default=None,
+                        help="where the clip directories go (default: assets/clips, or the user clips folder with --kind)")
+    parser.add_argument("--registry", type=Path, default=REGISTRY, help="registry file to (re)write (bundled clips)")
+    parser.add_argument("--kind", choices=KINDS, help="generate one clip of this kind instead of the bundled set")
+    parser.add_argument("--seed", type=int, default=0, help="with --kind: the generator's seed")
+    parser.add_argument("--name", help="with --kind: the registered name (default: KIND_sSEED)")
+    parser.add_argument("--overwrite", action="store_true", help="with --kind: replace an existing clip")
     args = parser.parse_args(argv)
-    for name, path in bundle_clips(args.out_dir, args.registry).items():
-        print(f"{name}: {path}")
-    print(f"registry: {args.registry}")
+    if args.kind is None:
+        for name, path in bundle_clips(args.out_dir or CLIPS_DIR, args.registry).items():
+            print(f"{name}: {path}")
+        print(f"registry: {args.registry}")
+        return 0
+    import platformdirs
+
+    from crisp_gym.registry import check_clip_name, register_clip
+
+    name = check_clip_name(args.name or f"{args.kind}_s{args.seed}")
+    out = (args.out_dir or Path(platformdirs.user_data_dir("crisp-gym")) / "clips") / name
+    boxes, motion, meta = make_clip(args.kind, args.seed)
+    try:
+        write_clip(out, boxes, motion, {**meta, "name": name}, overwrite=args.overwrite)
+    except FileExistsError as err:
+        print(f"crisp synth-clips: {err}")
+        return 2
+    registry = register_clip(name, out, tags=["synthetic", "generated", args.kind])
+    print(f"wrote clip '{name}' ({args.kind}, seed {args.seed}, {motion.num_frames} frames) to {out}\n"
+          f"registered in {registry}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -77,7 +77,7 @@ def test_kinematic_contacts_agree_with_ground_truth(name):
             # mass that cannot balance on the feet: while the sitter lowers itself onto and
             # lifts itself from the seat's front (~0.7 s each way) it keeps it over the feet, as
             # a body must, so the seat's part in those frames is invisible to kinematics.
-            assert precision >= 0.9 and recall >= (0.95 if part == "foot" else 0.6), (part, precision, recall)
+            assert precision >= 0.9 and recall >= (0.95 if part == "foot" else 0.75), (part, precision, recall)
         else:
             assert not labels[:, idx].any(), f"{part} contacts where the clip has none"
     # No clip leans on its hands or back.
