@@ -27,7 +27,6 @@ laid flat, :func:`crisp_gym.motion.level_feet`), or by one offset with ``--groun
 
 from __future__ import annotations
 
-import re
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,7 +41,7 @@ from tqdm.auto import tqdm
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, StanceGrounding, ground, ground_stance, level_feet
-from crisp_gym.registry import check_clip_name, register_clip
+from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
 from crisp_gym.scene import floor_box
 
 MOTION_SUFFIXES = (".bvh", ".npz", ".csv")
@@ -179,8 +178,8 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
 
 
 def clip_name_for(prefix: str, file: Path) -> str:
-    """``PREFIX_<stem>`` with every character but letters, digits, ``-``, ``_`` and ``.`` made ``_``."""
-    return f"{prefix}_{re.sub(r'[^A-Za-z0-9_.-]', '_', file.stem)}"
+    """``PREFIX_<stem>``, made a plain clip name (:func:`crisp_gym.registry.plain_clip_name`)."""
+    return plain_clip_name(f"{prefix}_{file.stem}")
 
 
 def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,

@@ -44,6 +44,9 @@ def _read(path: Path) -> dict[str, dict]:
         raise ValueError(f"{path} must have the form 'clips: {{NAME: {{path: DIR, tags: [...]}}}}'")
     entries = {}
     for name, entry in clips.items():
+        if not isinstance(name, str) or not _CLIP_NAME.fullmatch(name):
+            raise ValueError(f"{path}: {name!r} is not a plain clip name (a letter, digit or '_', then also "
+                             f"'.', '+', '-')")
         if not isinstance(entry, dict) or "path" not in entry:
             raise ValueError(f"{path}: clip {name!r} needs a 'path'")
         clip_path = Path(entry["path"]).expanduser()
@@ -112,6 +115,13 @@ def check_clip_name(name: str) -> str:
         raise ValueError(f"clip names must be plain names (a letter, digit or '_', then also '.', '+', '-'), "
                          f"got {name!r}")
     return name
+
+
+def plain_clip_name(text: str) -> str:
+    """``text`` made a plain clip name (:func:`check_clip_name`): every other character becomes
+    ``_``, and a leading ``.``, ``+`` or ``-`` gets a ``_`` in front (for names taken from file stems)."""
+    name = re.sub(r"[^\w.+-]", "_", text)
+    return check_clip_name(name if _CLIP_NAME.fullmatch(name) else f"_{name}")
 
 
 def register_clip(name: str, path: str | Path, tags: list[str] | None = None,

@@ -21,6 +21,7 @@ human.
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -32,7 +33,7 @@ from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
-from crisp_gym.registry import register_clip
+from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
 from crisp_gym.scene import Box, save_primitives, write_scene_xml
 from reconstruct.align import AlignConfig, Alignment, align
 from reconstruct.contact import (
@@ -182,12 +183,25 @@ class ReconstructArgs:
     """Replace an existing output directory."""
 
 
+def _check_writable(out: Path) -> None:
+    """ValueError unless a folder can be made where ``out``'s nearest existing ancestor is (tried
+    for real: permission bits do not say it for root or for filesystems such as /proc)."""
+    parent = next(p for p in out.absolute().parents if p.exists())
+    try:
+        probe = Path(tempfile.mkdtemp(prefix=".crisp-write-check-", dir=parent))
+    except OSError as err:
+        raise ValueError(f"cannot write {out}: {parent} does not take new folders ({err.strerror})") from None
+    probe.rmdir()
+
+
 def run(args: ReconstructArgs) -> Path:
     """Read, reconstruct and write; returns the output directory."""
-    name = args.name or args.input.stem
+    # Name and output are checked before any work: a bad one found after minutes of fitting loses them.
+    name = check_clip_name(args.name) if args.name is not None else plain_clip_name(args.input.stem)
     out = Path(args.output) if args.output is not None else Path("clips") / name
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+    _check_writable(out)
     contacts: ContactSource = args.contacts if args.contacts in ("kinematic", "none") else Path(args.contacts)
     if isinstance(contacts, Path) and not contacts.is_file():
         raise FileNotFoundError(f"--contacts {contacts}: expected 'kinematic', 'none' or an existing contacts file")

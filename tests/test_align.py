@@ -55,8 +55,6 @@ def test_noisy_input_aligns_to_the_true_scale_gravity_and_floor(tmp_path, spec, 
     true = compute_kinematics(truth.motion, model).body_pos
     tolerance = 0.02 * truth.cam_c2w[:, 2, 3].max() + 0.02
     assert abs(result.alignment.diagnostics["feet_height_m"]) < tolerance
-    # this view sees the floor near the person, which then sets its height
-    assert result.alignment.diagnostics["floor_distance_m"] < AlignConfig().floor_near_distance
     np.testing.assert_allclose(ours[..., 2], true[..., 2], atol=tolerance)
     np.testing.assert_allclose(np.linalg.norm(ours[-1] - ours[0], axis=-1), np.linalg.norm(true[-1] - true[0], axis=-1),
                                atol=0.02 * np.linalg.norm(true[-1] - true[0], axis=-1).max() + 0.02)

@@ -17,7 +17,7 @@ from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.import_motion import ImportMotionArgs, import_motion, main, read_motion
 from crisp_gym.metrics import sole_points
 from crisp_gym.motion import Motion, compute_kinematics, ground_stance, planted_feet
-from crisp_gym.registry import list_clips, load_clip, user_registry_path
+from crisp_gym.registry import check_clip_name, list_clips, load_clip, plain_clip_name, user_registry_path
 from crisp_gym.smpl import SMPL_TO_OURS, detect_up_axis
 
 from .conftest import SHARED_DATA
@@ -189,6 +189,13 @@ def test_bad_names_are_refused_before_any_work(name, walk, tmp_path):
     assert not (tmp_path / "out").exists() and not user_registry_path().exists()
 
 
+@pytest.mark.parametrize("text, name", [("my video", "my_video"), (".hidden", "_.hidden"), ("a/b\\c", "a_b_c"),
+                                        ("take-2.v1", "take-2.v1"), ("é+x", "é+x")])
+def test_file_stems_become_plain_names(text, name):
+    assert plain_clip_name(text) == name
+    assert check_clip_name(name) == name
+
+
 @pytest.mark.skipif(not ASAP.is_dir(), reason="../shared/data/asap_video_smpl is not present")
 @pytest.mark.parametrize("stem", ["video_walk_level3_filter_amass", "video_single_foot_jump_level2_filter_amass",
                                   "video_squat_level2_filter_amass"])
@@ -202,3 +209,11 @@ def test_real_video_smpl_imports_grounded(stem, model):
     lowest = np.where(planted, np.minimum(soles[:, 0::2, 2], soles[:, 1::2, 2]), np.inf).min(axis=1)
     assert np.isfinite(lowest).mean() > 0.3
     assert abs(np.median(lowest[np.isfinite(lowest)])) < 0.01
+
+
+def test_a_registry_with_a_path_for_a_name_is_refused(tmp_path):
+    registry = user_registry_path()
+    registry.parent.mkdir(parents=True, exist_ok=True)
+    registry.write_text(f"clips:\n  ../../x:\n    path: {tmp_path}\n")
+    with pytest.raises(ValueError, match=r"registry.yaml: '../../x' is not a plain clip name"):
+        list_clips()

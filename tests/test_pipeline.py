@@ -114,3 +114,18 @@ def test_heading_alignment_recovers_a_yaw_and_shift():
     truth[:2, 3] = [1.5, -2.0]
     moved = path @ truth[:3, :3].T + truth[:3, 3]
     np.testing.assert_allclose(heading_alignment(path, moved), truth, atol=1e-9)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--name", "../../escape", "--register"], "plain names"),
+    (["--name", "a b"], "plain names"),
+    (["-o", "/proc/crisp-clip"], "cannot write"),
+])  # fmt: skip
+def test_bad_names_and_outputs_fail_before_any_work(argv, message, tmp_path, monkeypatch, capsys):
+    """Checked before the input is even read: the input here does not exist."""
+    monkeypatch.chdir(tmp_path)
+    read = []
+    monkeypatch.setattr(pipeline, "read_frames", lambda *a, **k: read.append(a))
+    assert pipeline.main([str(tmp_path / "missing.npz"), *argv]) == 2
+    assert message in capsys.readouterr().out and not read
+    assert not (tmp_path / "clips").exists() and not (tmp_path.parent / "escape").exists()

@@ -58,10 +58,11 @@ def test_clean_depth_lies_on_the_true_boxes_and_the_person_in_front(spec):
         assert person.any() and (valid & ~person).sum() > 1000
         # off the person, every point is on a box's surface (the scale and transform are right)
         assert np.abs(box_signed_distance(points[valid & ~person], video.boxes)).max() < 2e-4
-        # on the person, the depth is in front of the scene behind them
+        # on the person, the depth is in front of the scene behind them (where a perched thigh
+        # rests on the seat's edge, by only 0.07 mm)
         behind, _ = scene_only.render(video.frames.intrinsic, video.cam_c2w[t], 96, 72)
         depth = video.frames.depth[t] * video.scale
-        assert np.all((depth[person] < behind[person] - 1e-4) | (behind[person] == 0))
+        assert np.all((depth[person] < behind[person]) | (behind[person] == 0))
 
 
 def test_renders_are_reproducible_and_seeded():
