@@ -1,7 +1,9 @@
 """The ``crisp`` command: one subcommand per job, each a module with ``main(argv) -> int``.
 
 Subcommand modules are imported only when run, so ``crisp --help`` and light commands do
-not pay for torch or open3d.
+not pay for torch or open3d. A user error (a bad value, a missing or unreadable file, an output
+that exists) ends any subcommand with one line naming it and exit status 2; ``crisp --debug
+COMMAND ...`` shows the traceback instead.
 """
 
 from __future__ import annotations
@@ -23,15 +25,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+               PermissionError)
+"""Exceptions that report what the user asked for wrongly, not a fault of the program."""
+
+
 def _usage() -> str:
-    lines = ["usage: crisp COMMAND [ARGS...]", "", "commands:"]
+    lines = ["usage: crisp [--debug] COMMAND [ARGS...]", "", "commands:"]
     lines += [f"  {name:<14} {help_}" for name, (_, help_) in COMMANDS.items()]
-    lines += ["", "`crisp COMMAND --help` describes a command's options."]
+    lines += ["", "`crisp COMMAND --help` describes a command's options; `--debug` shows tracebacks of errors."]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = bool(argv) and argv[0] == "--debug"
+    argv = argv[1:] if debug else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return 0
@@ -40,7 +49,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"crisp: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module = importlib.import_module(COMMANDS[name][0])
-    result = module.main(rest)
+    try:
+        result = module.main(rest)
+    except USER_ERRORS as err:
+        if debug:
+            raise
+        print(f"crisp {name}: {err}\n(crisp --debug {name} ... shows the traceback)", file=sys.stderr)
+        return 2
     return int(result or 0)
 
 

@@ -38,7 +38,11 @@ def user_registry_path() -> Path:
 def _read(path: Path) -> dict[str, dict]:
     if not path.is_file():
         return {}
-    content = yaml.safe_load(path.read_text()) or {}
+    try:
+        content = yaml.safe_load(path.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not a readable registry ({type(err).__name__}: "
+                         f"{str(err).splitlines()[0]}); fix or remove it") from None
     clips = content.get("clips", {}) if isinstance(content, dict) else None
     if not isinstance(clips, dict):
         raise ValueError(f"{path} must have the form 'clips: {{NAME: {{path: DIR, tags: [...]}}}}'")

@@ -1,0 +1,43 @@
+"""The ``crisp`` dispatcher: user errors end any subcommand with one line and exit status 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from crisp_gym import cli
+from crisp_gym.registry import user_registry_path
+
+
+def _corrupt_registry() -> None:
+    registry = user_registry_path()
+    registry.parent.mkdir(parents=True, exist_ok=True)
+    registry.write_text("clips:\n  a: [unclosed\n")
+
+
+def test_a_corrupt_registry_is_one_line_naming_the_file(tmp_path, capsys):
+    _corrupt_registry()
+    assert cli.main(["export", "flat_walk", "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert str(user_registry_path()) in err and "Traceback" not in err and "--debug" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    _corrupt_registry()
+    with pytest.raises(ValueError, match="not a readable registry"):
+        cli.main(["--debug", "export", "flat_walk", "-o", str(tmp_path / "out")])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval", "/nonexistent-run"], "no policy at"),
+    (["import-motion", "/nonexistent.npz", "--name", "x"], "no motion file"),
+    (["export", "no-such-clip", "--format", "csv"], "no-such-clip"),
+])  # fmt: skip
+def test_user_errors_exit_2(argv, message, capsys):
+    assert cli.main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_unknown_command_and_help(capsys):
+    assert cli.main(["nope"]) == 2
+    assert cli.main(["--help"]) == 0 and "--debug" in capsys.readouterr().out
