@@ -48,6 +48,8 @@ MOTION_SUFFIXES = (".bvh", ".npz", ".csv")
 """File types a folder import picks up."""
 
 Grounding = Literal["stance", "constant"]
+_MAX_FPS = 1000.0  # frame rates beyond any capture's are a wrong header, not a motion
+_MAX_FRAMES = 1e6  # frames of a written clip: 9 hours at 30 fps
 _FLAT_GROUND_SPREAD = 0.10  # m: per-frame grounding shifts beyond this are more than a capture's floor drift
 UpAxis = Literal["auto", "x", "y", "z"]
 
@@ -159,8 +161,8 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
     if not path.is_file():
         raise FileNotFoundError(f"no motion file at {path}")
     for label, rate in (("fps", fps), ("source fps", source_fps)):
-        if rate is not None and not (np.isfinite(rate) and 0 < rate <= 1000):
-            raise ValueError(f"{label} must be a frame rate in (0, 1000], got {rate}")
+        if rate is not None and not (np.isfinite(rate) and 0 < rate <= _MAX_FPS):
+            raise ValueError(f"{label} must be a frame rate in (0, {_MAX_FPS:g}], got {rate}")
     if grounding not in ("stance", "constant"):
         raise ValueError(f"grounding must be 'stance' or 'constant', got {grounding!r}")
     model = model if model is not None else build_humanoid()
@@ -169,6 +171,13 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
     if source_fps is not None:
         motion = replace(motion, fps=source_fps)
     rate = motion.fps
+    if not rate <= _MAX_FPS:
+        raise ValueError(f"{path}: a frame rate of {rate:g} fps is not a capture's (at most {_MAX_FPS:g}); "
+                         f"pass --source-fps if the file's is wrong")
+    frames = (motion.num_frames - 1) * fps / rate + 1  # checked before resampling allocates them
+    if frames > _MAX_FRAMES:
+        raise ValueError(f"{path}: {motion.num_frames} frames at {rate:g} fps are {frames:.3g} frames at {fps:g} fps "
+                         f"(at most {_MAX_FRAMES:.0e}); is the frame rate ({rate:g} fps) right? --source-fps sets it")
     motion = motion.resample(fps)
     if offset is None:
         grounded = ground(motion, model) if stance is None else ground_stance(motion, model, stance)

@@ -217,3 +217,13 @@ def test_a_registry_with_a_path_for_a_name_is_refused(tmp_path):
     registry.write_text(f"clips:\n  ../../x:\n    path: {tmp_path}\n")
     with pytest.raises(ValueError, match=r"registry.yaml: '../../x' is not a plain clip name"):
         list_clips()
+
+
+@pytest.mark.parametrize("rate, message", [(1e-4, "frames at 30 fps"), (1e7, "not a capture's")])
+def test_impossible_frame_rates_fail_before_resampling(rate, message, walk, model, tmp_path):
+    """A header that says 1e-4 fps would resample 185 frames into 55 M (the issue's MemoryError);
+    one that says 1e7 fps is no capture. Both are refused before resampling (which would fail
+    with a MemoryError, not this message), naming the rate."""
+    path = _amass_file(tmp_path / "bad_rate.npz", walk, fps=rate)
+    with pytest.raises(ValueError, match=message):
+        read_motion(path, model=model)
