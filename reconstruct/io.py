@@ -9,8 +9,11 @@ Depth videos (:func:`read_frames` picks the reader from the path):
 * an RGB-D folder (:func:`read_rgbd_folder`) in the TUM layout (``rgb.txt`` and ``depth.txt``
   listing ``timestamp path``, 16-bit depth PNGs in units of 1/5000 m, optional
   ``groundtruth.txt`` with ``timestamp tx ty tz qx qy qz qw`` camera → world) or the Redwood
-  layout (``color/`` or ``image/`` and ``depth/`` folders of images paired in name order, depth in
-  mm, optional ``*.log`` trajectory of camera → world matrices). Intrinsics come from an
+  layout (``color/`` or ``image/`` and ``depth/`` folders of images paired in numeric name order,
+  16-bit PNG or PGM depth in mm, optional camera → world poses as a ``*.log`` trajectory of
+  matrices or a ``pose.txt`` of ``tx ty tz qx qy qz qw`` lines, one per frame, as in the
+  slambook2 examples). Intrinsics and depth scale come from :class:`RgbdFolderConfig`
+  (``crisp reconstruct --intrinsics FX FY CX CY --depth-scale S``), else an
   ``intrinsic.json`` (Open3D's format: ``width``, ``height``, column-major
   ``intrinsic_matrix``, optional ``depth_scale``) or a ``camera.txt`` (``fx fy cx cy
   [depth_scale]``), else the layout's default camera (TUM freiburg1, or Open3D's PrimeSense
@@ -31,6 +34,7 @@ from __future__ import annotations
 import json
 import logging
 import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -134,6 +138,9 @@ class RgbdFolderConfig:
     """Reading an RGB-D folder and, when it has no poses, tracking the camera.
 
     Attributes:
+        intrinsics: (fx, fy, cx, cy) of the depth images in pixels, overriding the folder's
+            ``intrinsic.json`` / ``camera.txt`` and the layout's default.
+        depth_scale: depth image units per metre (1000 for millimetres), overriding the same.
         max_time_difference: TUM colour and depth frames farther apart than this (s) are not
             paired (the TUM tools' default).
         depth_min, depth_max: depths the odometry uses (m); Open3D's default maximum of 4 m is
@@ -144,6 +151,8 @@ class RgbdFolderConfig:
             repeats the previous frame-to-frame motion) before the folder is rejected.
     """
 
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float | None = None
     max_time_difference: float = 0.02
     depth_min: float = 0.1
     depth_max: float = 4.0
@@ -207,6 +216,27 @@ def _tum_poses(path: Path, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return poses, inside
 
 
+def _natural_key(path: Path) -> tuple:
+    """Sort key that orders ``2.png`` before ``10.png``."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.stem))
+
+
+def _pose_lines(path: Path, count: int) -> np.ndarray:
+    """(count, 4, 4) camera → world poses from ``tx ty tz qx qy qz qw`` lines, one per frame in order."""
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        values = np.array([[float(x) for x in row] for row in rows])
+    except ValueError:
+        raise ValueError(f"{path}: expected one 'tx ty tz qx qy qz qw' line per frame") from None
+    if values.ndim != 2 or values.shape != (count, 7):
+        raise ValueError(f"{path}: expected {count} lines 'tx ty tz qx qy qz qw' (one per frame), "
+                         f"got {len(rows)} lines of {values.shape[1] if values.ndim == 2 else '?'} numbers")
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    poses[:, :3, 3] = values[:, :3]
+    poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
+    return poses
+
+
 def _folder_camera(folder: Path, default: tuple[float, float, float, float], default_scale: float,
                    width: int, height: int) -> tuple[np.ndarray, float]:
     """(K, depth units per metre) from ``intrinsic.json`` / ``camera.txt``, else the scaled default."""
@@ -249,8 +279,9 @@ def _load_images(color_paths: list[Path], depth_paths: list[Path], depth_scale: 
     depth, rgb = [], []
     for c, d in tqdm(list(zip(color_paths, depth_paths)), desc="read", unit="frame", disable=not progress):
         raw = _read_image(d, "depth")
-        if raw.ndim != 2 or raw.dtype != np.uint16:
-            raise ValueError(f"{d}: depth images must be single-channel 16-bit PNGs, got {raw.dtype} {raw.shape}")
+        # 16-bit PGMs read as int32: any single-channel integer image within 16 bits is a depth image
+        if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer) or raw.min() < 0 or raw.max() > 65535:
+            raise ValueError(f"{d}: depth images must be single-channel 16-bit PNGs or PGMs, got {raw.dtype} {raw.shape}")
         colour = _read_image(c, "colour")
         if colour.ndim == 2:
             colour = np.repeat(colour[..., None], 3, axis=2)
@@ -341,13 +372,17 @@ def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, p
         colour_dir = next((folder / n for n in ("color", "image", "rgb") if (folder / n).is_dir()), None)
         if colour_dir is None:
             raise ValueError(f"{folder}: a Redwood-layout folder needs color/ (or image/) next to depth/")
-        depth_paths = sorted(p for p in (folder / "depth").iterdir() if p.suffix.lower() == ".png")
-        color_paths = sorted(p for p in colour_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        depth_paths = sorted((p for p in (folder / "depth").iterdir() if p.suffix.lower() in (".png", ".pgm")),
+                             key=_natural_key)
+        color_paths = sorted((p for p in colour_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")),
+                             key=_natural_key)
         if not depth_paths or len(depth_paths) != len(color_paths):
-            raise ValueError(f"{folder}: depth/ has {len(depth_paths)} PNGs and {colour_dir.name}/ "
+            raise ValueError(f"{folder}: depth/ has {len(depth_paths)} PNG/PGM images and {colour_dir.name}/ "
                              f"{len(color_paths)} images; they must pair one to one (and not be empty)")
         logs = sorted(folder.glob("*.log"))
-        if logs:
+        if (folder / "pose.txt").is_file():
+            poses = _pose_lines(folder / "pose.txt", len(depth_paths))
+        elif logs:
             trajectory = o3d.io.read_pinhole_camera_trajectory(str(logs[0]))
             if len(trajectory.parameters) != len(depth_paths):
                 raise ValueError(f"{logs[0]} has {len(trajectory.parameters)} poses for {len(depth_paths)} frames")
@@ -358,6 +393,13 @@ def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, p
                          "(color/ and depth/)")
     first = _read_image(depth_paths[0], "depth")
     intrinsic, depth_scale = _folder_camera(folder, default, default_scale, first.shape[1], first.shape[0])
+    if cfg.intrinsics is not None:
+        fx, fy, cx, cy = cfg.intrinsics
+        intrinsic = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    if cfg.depth_scale is not None:
+        if not (np.isfinite(cfg.depth_scale) and cfg.depth_scale > 0):
+            raise ValueError(f"the depth scale must be a positive number of units per metre, got {cfg.depth_scale}")
+        depth_scale = cfg.depth_scale
     depth, rgb = _load_images(color_paths, depth_paths, depth_scale, progress)
     if poses is None:
         poses = rgbd_odometry(depth, rgb, intrinsic, cfg, progress)
@@ -367,8 +409,9 @@ def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, p
         raise ValueError(f"{folder}: {err}") from None
 
 
-def read_frames(path: str | Path, progress: bool = True) -> Frames:
-    """Any supported depth video: an npz file, a folder holding ``input.npz``, or an RGB-D folder."""
+def read_frames(path: str | Path, progress: bool = True, rgbd: RgbdFolderConfig | None = None) -> Frames:
+    """Any supported depth video: an npz file, a folder holding ``input.npz``, or an RGB-D folder
+    (read with ``rgbd``)."""
     path = Path(path)
     if path.is_file():
         if path.suffix.lower() != ".npz":
@@ -377,7 +420,7 @@ def read_frames(path: str | Path, progress: bool = True) -> Frames:
     if path.is_dir():
         if (path / "input.npz").is_file():
             return read_megasam_npz(path / "input.npz")
-        return read_rgbd_folder(path, progress=progress)
+        return read_rgbd_folder(path, rgbd, progress=progress)
     raise FileNotFoundError(f"no depth video at {path} (expected an .npz or an RGB-D folder)")
 
 

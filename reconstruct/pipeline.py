@@ -46,7 +46,7 @@ from reconstruct.contact import (
     load_external_contacts,
 )
 from reconstruct.frames import Frames
-from reconstruct.io import MotionInput, read_frames, read_motion
+from reconstruct.io import MotionInput, RgbdFolderConfig, read_frames, read_motion
 from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
 
 
@@ -177,6 +177,10 @@ class ReconstructArgs:
     """For per-vertex contact files: an npz with ``vertex_body`` (6890,) mapping SMPL vertices to bodies."""
     metric: bool = False
     """Trust the depth as metres (required without --motion)."""
+    intrinsics: tuple[float, float, float, float] | None = None
+    """RGB-D folders: FX FY CX CY of the depth images in pixels (default: the folder's camera file or layout)."""
+    depth_scale: float | None = None
+    """RGB-D folders: depth image units per metre, e.g. 1000 for millimetres (default: as for --intrinsics)."""
     register: bool = False
     """Add the clip to the user registry under NAME."""
     overwrite: bool = False
@@ -207,7 +211,7 @@ def run(args: ReconstructArgs) -> Path:
         raise FileNotFoundError(f"--contacts {contacts}: expected 'kinematic', 'none' or an existing contacts file")
 
     start = time.perf_counter()
-    frames = read_frames(args.input)
+    frames = read_frames(args.input, rgbd=RgbdFolderConfig(intrinsics=args.intrinsics, depth_scale=args.depth_scale))
     motion = None if args.motion is None else read_motion(args.motion, frame=args.motion_frame)
     read_time = time.perf_counter() - start
     result = reconstruct(frames, motion, contacts=contacts, metric=args.metric, vertex_map=args.vertex_map)

@@ -17,6 +17,7 @@ from reconstruct.frames import Frames
 from reconstruct.io import (
     PRIMESENSE_INTRINSIC,
     SMPL_PELVIS_OFFSET,
+    RgbdFolderConfig,
     TUM_FR1_INTRINSIC,
     read_frames,
     read_megasam_npz,
@@ -25,7 +26,7 @@ from reconstruct.io import (
     save_camera_smpl,
 )  # fmt: skip
 from reconstruct.raycast import DepthRenderer, box_mesh, look_at
-from tests.conftest import sway_motion
+from tests.conftest import SHARED_DATA, sway_motion
 
 W, H = 320, 240  # Open3D's odometry runs a 3-level pyramid: at 160 px its coarsest level is too coarse
 _YAW = [Rotation.from_euler("z", a, degrees=True).as_matrix() for a in (20, -35, 50, 10)]
@@ -303,3 +304,50 @@ def test_motion_npz_is_a_world_motion_and_bad_motions_are_rejected(tmp_path):
         read_motion(tmp_path / "m.txt")
     with pytest.raises(FileNotFoundError):
         read_motion(tmp_path / "none.npz")
+
+
+def _slambook_folder(root, names=("1", "2", "10"), depth_mm=2000):
+    """A slambook2-style folder: color/N.png, 16-bit depth/N.pgm in millimetres, pose.txt lines
+    'tx ty tz qx qy qz qw' (camera to world), no camera file."""
+    import cv2
+
+    (root / "color").mkdir(parents=True)
+    (root / "depth").mkdir()
+    poses = []
+    for i, name in enumerate(names):
+        depth = np.full((48, 64), depth_mm + 100 * i, dtype=np.uint16)  # frame i at 2.0 + 0.1 i m
+        assert cv2.imwrite(str(root / "depth" / f"{name}.pgm"), depth)
+        iio.imwrite(root / "color" / f"{name}.png", np.full((48, 64, 3), 30 * i, dtype=np.uint8))
+        quat = Rotation.from_euler("z", 10.0 * i, degrees=True).as_quat()
+        poses.append([0.1 * i, 0.0, 0.0, *quat])
+    (root / "pose.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in p) for p in poses) + "\n")
+    return poses
+
+
+def test_slambook_folder_with_pgm_depth_pose_lines_and_given_camera(tmp_path):
+    poses = _slambook_folder(tmp_path / "rgbd")
+    config = RgbdFolderConfig(intrinsics=(50.0, 51.0, 31.5, 23.5), depth_scale=1000.0)
+    frames = read_rgbd_folder(tmp_path / "rgbd", config, progress=False)
+    np.testing.assert_allclose(frames.intrinsic, [[50, 0, 31.5], [0, 51, 23.5], [0, 0, 1]])
+    # numeric order (1, 2, 10), millimetres to metres, each frame with its own pose line
+    np.testing.assert_allclose(frames.depth[:, 0, 0], [2.0, 2.1, 2.2], atol=1e-6)
+    for pose, c2w in zip(poses, frames.cam_c2w):
+        np.testing.assert_allclose(c2w[:3, 3], pose[:3], atol=1e-9)
+        np.testing.assert_allclose(Rotation.from_matrix(c2w[:3, :3]).as_quat(), pose[3:], atol=1e-8)
+    with pytest.raises(ValueError, match="depth scale"):
+        read_rgbd_folder(tmp_path / "rgbd", RgbdFolderConfig(depth_scale=0.0), progress=False)
+    (tmp_path / "rgbd" / "pose.txt").write_text("0 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match="expected 3 lines"):
+        read_rgbd_folder(tmp_path / "rgbd", config, progress=False)
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "slambook2_rgbd").is_dir(), reason="../shared/data/slambook2_rgbd is absent")
+def test_real_slambook_folder_reads_as_it_is():
+    """The five real Kinect frames: PGM depth in millimetres, pose.txt, camera from the options."""
+    config = RgbdFolderConfig(intrinsics=(518.0, 519.0, 325.5, 253.5), depth_scale=1000.0)
+    frames = read_rgbd_folder(SHARED_DATA / "slambook2_rgbd", config, progress=False)
+    assert frames.num_frames == 5 and frames.depth.shape[1:] == (480, 640)
+    valid = frames.depth[frames.depth > 0]
+    assert 1.0 < np.median(valid) < 5.0  # a room in metres, not millimetres or 1/5000 m
+    np.testing.assert_allclose(frames.cam_c2w[:, 3, :3], 0.0)
+    assert np.linalg.norm(frames.cam_c2w[-1, :3, 3] - frames.cam_c2w[0, :3, 3]) > 0.3  # the camera moves
