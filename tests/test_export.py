@@ -468,14 +468,41 @@ def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
 
 
 def test_cli_clip_formats_and_errors(sway_clip: Path, tmp_path: Path) -> None:
-    assert main([str(sway_clip), "--format", "csv", "glb", "--quat-order", "xyzw", "-o", str(tmp_path)]) == 0
-    assert read_motion_csv(tmp_path / "motion" / "motion.csv").num_frames == load_clip(sway_clip).motion.num_frames
-    assert (tmp_path / "mesh" / "scene.glb").is_file() and not (tmp_path / "mjcf").exists()
+    out = tmp_path / "out"
+    assert main([str(sway_clip), "--format", "csv", "glb", "--quat-order", "xyzw", "-o", str(out)]) == 0
+    assert read_motion_csv(out / "motion" / "motion.csv").num_frames == load_clip(sway_clip).motion.num_frames
+    assert (out / "mesh" / "scene.glb").is_file() and not (out / "mjcf").exists()
     with pytest.raises(ValueError, match="separate calls"):
-        export(ExportConfig(source=str(sway_clip), format=("mjcf", "onnx"), output=tmp_path))
+        export(ExportConfig(source=str(sway_clip), format=("mjcf", "onnx"), output=tmp_path / "new"))
     with pytest.raises(ValueError, match="unknown clip"):
-        export(ExportConfig(source="no_such_clip", output=tmp_path))
+        export(ExportConfig(source="no_such_clip", output=tmp_path / "new"))
+    assert not (tmp_path / "new").exists()
     clip = load_clip(sway_clip)
     other = write_clip(tmp_path / "hfield", clip.boxes, clip.motion, {"scene_kind": "heightfield"})
     with pytest.raises(ValueError, match="box scenes"):
         export(ExportConfig(source=str(other), format=("urdf",), output=tmp_path / "x"))
+
+
+def test_export_replaces_a_folder_whole_or_not_at_all(sway_clip: Path, tmp_path: Path, monkeypatch) -> None:
+    """An existing export is refused without --overwrite; an export interrupted midway leaves the
+    previous one exactly as it was (not a folder mixing two exports), with no temporary left."""
+    out = tmp_path / "out"
+    export(ExportConfig(source=str(sway_clip), format=("csv", "glb"), output=out))
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        export(ExportConfig(source=str(sway_clip), format=("csv",), output=out))
+
+    import crisp_gym.export as export_module
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export_module, "write_scene_mesh", interrupted)  # csv is written, then the mesh fails
+    with pytest.raises(KeyboardInterrupt):
+        export(ExportConfig(source=str(sway_clip), format=("csv", "glb"), output=out, overwrite=True,
+                            quat_order="xyzw"))
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    monkeypatch.undo()
+    files = export(ExportConfig(source=str(sway_clip), format=("csv",), output=out, overwrite=True, quat_order="xyzw"))
+    assert files == [out / "motion" / "motion.csv"] and not (out / "mesh").exists()

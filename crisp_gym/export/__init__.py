@@ -43,6 +43,7 @@ from typing import Annotated, Literal
 import tyro
 from tqdm.auto import tqdm
 
+from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import Clip
 from crisp_gym.export.meshes import write_scene_mesh
 from crisp_gym.export.mjcf import MjcfExportConfig, write_mjcf
@@ -71,6 +72,8 @@ class ExportConfig:
         smpl_up_axis: world up axis of the SMPL export (``z`` as AMASS/PHC, ``y`` as SMPL's own).
         color_by_source: colour mesh primitives by source (planar blue, contact orange).
         keyframes: one MJCF ``<key>`` per motion frame in ``track.xml``.
+        overwrite: replace an existing ``output`` folder (it is written whole beside it and
+            swapped in, so an interrupted export leaves the previous one as it was).
     """
 
     source: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="SOURCE")]
@@ -80,6 +83,7 @@ class ExportConfig:
     smpl_up_axis: Literal["z", "y"] = "z"
     color_by_source: bool = False
     keyframes: bool = True
+    overwrite: bool = False
 
     def formats(self) -> tuple[str, ...]:
         """The requested formats, ``all`` expanded, duplicates dropped, in a stable order."""
@@ -127,13 +131,25 @@ def export_clip(clip: Clip, output: str | Path, formats: tuple[str, ...], config
 
 
 def export(config: ExportConfig) -> list[Path]:
-    """Run ``crisp export`` for ``config``; returns the files written."""
-    formats = config.formats()
-    if set(formats) <= set(POLICY_FORMATS):
-        from crisp_gym.export.policy import export_checkpoint  # torch only when a policy is exported
+    """Run ``crisp export`` for ``config``; returns the files written.
 
-        return export_checkpoint(config.source, Path(config.output) / "policy", formats)
-    return export_clip(load_clip(config.source), config.output, formats, config)
+    The whole output folder is built beside ``config.output`` and renamed into place: an
+    interrupted export never leaves a folder mixing two exports, and an existing folder is
+    kept unless ``config.overwrite``.
+    """
+    formats = config.formats()
+    output = Path(config.output)
+    if output.exists() and not config.overwrite:
+        raise FileExistsError(f"{output} exists; pass --overwrite to replace it")
+    clip = None if set(formats) <= set(POLICY_FORMATS) else load_clip(config.source)  # fail before writing
+    with atomic_directory(output, config.overwrite) as tmp:
+        if clip is None:
+            from crisp_gym.export.policy import export_checkpoint  # torch only when a policy is exported
+
+            written = export_checkpoint(config.source, tmp / "policy", formats)
+        else:
+            written = export_clip(clip, tmp, formats, config)
+    return [output / Path(f).relative_to(tmp) for f in written]
 
 
 def main(argv: list[str] | None = None) -> int:
