@@ -338,6 +338,26 @@ def rgbd_odometry(depth: np.ndarray, rgb: np.ndarray, intrinsic: np.ndarray, con
     return poses
 
 
+_ROOM_DEPTH = (0.5, 8.0)  # m: median depths of an RGB-D sensor looking at a room or a person in it
+
+
+def _check_depth_range(folder: Path, depth: np.ndarray, depth_scale: float) -> None:
+    """Warn when the median depth is no room's: the usual cause is a wrong depth scale (TUM's
+    1/5000 m applied to millimetres gives a 3 m room as 0.6 m), which fits tiny boxes silently."""
+    valid = depth[depth > 0]
+    if not valid.size:
+        raise ValueError(f"{folder}: every depth pixel is 0 (no measurement)")
+    median = float(np.median(valid))
+    if _ROOM_DEPTH[0] <= median <= _ROOM_DEPTH[1]:
+        return
+    hints = [f"{scale:g} ({name}: median {median * depth_scale / scale:.2f} m)"
+             for name, scale in (("millimetres", 1000.0), ("TUM's 1/5000 m", 5000.0))
+             if scale != depth_scale and _ROOM_DEPTH[0] <= median * depth_scale / scale <= _ROOM_DEPTH[1]]
+    log.warning("%s: the median depth is %.2f m with %g depth units per metre, outside a room's %g-%g m; "
+                "is the depth scale right?%s", folder, median, depth_scale, *_ROOM_DEPTH,
+                f" --depth-scale {' or '.join(hints)}" if hints else "")
+
+
 def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, progress: bool = True) -> Frames:
     """A TUM- or Redwood-layout RGB-D folder as metric :class:`Frames` (see the module docstring)."""
     cfg = config or RgbdFolderConfig()
@@ -401,6 +421,7 @@ def read_rgbd_folder(path: str | Path, config: RgbdFolderConfig | None = None, p
             raise ValueError(f"the depth scale must be a positive number of units per metre, got {cfg.depth_scale}")
         depth_scale = cfg.depth_scale
     depth, rgb = _load_images(color_paths, depth_paths, depth_scale, progress)
+    _check_depth_range(folder, depth, depth_scale)
     if poses is None:
         poses = rgbd_odometry(depth, rgb, intrinsic, cfg, progress)
     try:

@@ -351,3 +351,20 @@ def test_real_slambook_folder_reads_as_it_is():
     assert 1.0 < np.median(valid) < 5.0  # a room in metres, not millimetres or 1/5000 m
     np.testing.assert_allclose(frames.cam_c2w[:, 3, :3], 0.0)
     assert np.linalg.norm(frames.cam_c2w[-1, :3, 3] - frames.cam_c2w[0, :3, 3]) > 0.3  # the camera moves
+
+
+def test_a_wrong_depth_scale_is_warned_about(tmp_path, caplog):
+    """Millimetre depth read with TUM's 1/5000 m makes a 2-2.2 m scene 0.4 m deep: the reader says
+    so and names the scale that gives a room."""
+    _slambook_folder(tmp_path / "rgbd")
+    intrinsics = (50.0, 51.0, 31.5, 23.5)
+    with caplog.at_level("WARNING", logger="reconstruct.io"):
+        frames = read_rgbd_folder(tmp_path / "rgbd", RgbdFolderConfig(intrinsics=intrinsics, depth_scale=5000.0),
+                                  progress=False)
+    assert frames.depth.max() < 0.5
+    assert "--depth-scale 1000 (millimetres: median 2.10 m)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="reconstruct.io"):
+        read_rgbd_folder(tmp_path / "rgbd", RgbdFolderConfig(intrinsics=intrinsics, depth_scale=1000.0),
+                         progress=False)
+    assert "depth scale" not in caplog.text
