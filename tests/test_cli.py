@@ -41,3 +41,18 @@ def test_user_errors_exit_2(argv, message, capsys):
 def test_unknown_command_and_help(capsys):
     assert cli.main(["nope"]) == 2
     assert cli.main(["--help"]) == 0 and "--debug" in capsys.readouterr().out
+
+
+def test_unreadable_policy_files_are_named(tmp_path, capsys):
+    """A garbage file and a truncated real policy: one line naming the file, no traceback."""
+    from pathlib import Path
+
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a torch file")
+    shipped = Path(__file__).resolve().parents[1] / "assets" / "policies" / "flat_walk" / "policy.pt"
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(shipped.read_bytes()[:1000])
+    for path, message in ((garbage, "not a torch file"), (truncated, "not a readable torch file")):
+        assert cli.main(["eval", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert str(path) in err and message in err and "Traceback" not in err

@@ -31,6 +31,7 @@ import csv
 import json
 import math
 import os
+import pickle
 import signal
 import sys
 import threading
@@ -399,6 +400,17 @@ def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optim
     return path
 
 
+def _load_file(path: Path) -> Any:
+    """``torch.load`` of tensors and plain values only; a file it cannot read is a ValueError naming it."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:  # garbage, or objects that only running pickled code would make
+        raise ValueError(f"{path} is not a torch file of tensors and plain values (corrupt, or not ours)") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as err:  # e.g. a truncated zip archive
+        reason = str(err).strip().split(". ")[0] if str(err).strip() else type(err).__name__
+        raise ValueError(f"{path} is not a readable torch file ({reason})") from None
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """A checkpoint's contents (tensors and plain Python values only)."""
     path = Path(path)
@@ -406,8 +418,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         path = path / CHECKPOINT_NAME
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if state.get("format_version") != CHECKPOINT_FORMAT:
+    state = _load_file(path)
+    if not isinstance(state, dict) or state.get("format_version") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a version-{CHECKPOINT_FORMAT} crisp-gym training checkpoint")
     return state
 
@@ -442,7 +454,7 @@ def _read_policy_source(path: str | Path) -> tuple[Path, dict[str, Any]]:
     if not path.is_file():
         raise FileNotFoundError(f"no policy at {path}: expected a run directory, a {CHECKPOINT_NAME} "
                                 f"or a {POLICY_NAME}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    state = _load_file(path)
     if not isinstance(state, dict) or not (
             state.get("kind") == "policy" and state.get("format_version") == POLICY_FORMAT
             or state.get("format_version") == CHECKPOINT_FORMAT and "critic" in state):
