@@ -89,7 +89,12 @@ def load_clip_dir(directory: str | Path) -> Clip:
     if missing:
         raise FileNotFoundError(f"{directory} is not a complete clip: missing {missing} "
                                 f"(a clip holds {list(CLIP_FILES)})")
-    meta = json.loads((directory / "meta.json").read_text())
+    try:
+        meta = json.loads((directory / "meta.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{directory / 'meta.json'} is not valid JSON: {err}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{directory / 'meta.json'} must hold a JSON object, got {type(meta).__name__}")
     if meta.get("scene_kind", "boxes") not in SCENE_KINDS:
         raise ValueError(f"{directory}/meta.json: scene_kind must be one of {SCENE_KINDS}, got {meta['scene_kind']!r}")
     return Clip(path=directory, boxes=load_primitives(directory / "primitives.json"),

@@ -13,6 +13,8 @@ on what a posture means.
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -213,6 +215,13 @@ class Motion:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no motion file at {path}")
+        try:
+            return cls._read(path)
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:  # truncated or bit-flipped
+            raise ValueError(f"{path} is not a readable npz archive ({type(err).__name__}: {err})") from None
+
+    @classmethod
+    def _read(cls, path: Path) -> Motion:
         with np.load(path, allow_pickle=False) as data:
             keys = set(data.files)
             required = {"fps", "root_pos", "root_quat", "dof_pos", "dof_names", "body_names"}

@@ -281,7 +281,8 @@ def _load_images(color_paths: list[Path], depth_paths: list[Path], depth_scale: 
         raw = _read_image(d, "depth")
         # 16-bit PGMs read as int32: any single-channel integer image within 16 bits is a depth image
         if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer) or raw.min() < 0 or raw.max() > 65535:
-            raise ValueError(f"{d}: depth images must be single-channel 16-bit PNGs or PGMs, got {raw.dtype} {raw.shape}")
+            raise ValueError(f"{d}: depth images must be single-channel 16-bit PNGs or PGMs, "
+                             f"got {raw.dtype} {raw.shape}")
         colour = _read_image(c, "colour")
         if colour.ndim == 2:
             colour = np.repeat(colour[..., None], 3, axis=2)

@@ -56,3 +56,21 @@ def test_unreadable_policy_files_are_named(tmp_path, capsys):
         assert cli.main(["eval", str(path)]) == 2
         err = capsys.readouterr().err
         assert str(path) in err and message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda clip: (clip / "motion.npz").write_bytes((clip / "motion.npz").read_bytes()[:500]),
+     "motion.npz is not a readable npz"),
+    (lambda clip: (clip / "meta.json").write_text("{bad"), "meta.json is not valid JSON"),
+    (lambda clip: (clip / "primitives.json").write_text("[1,"), "primitives.json is not valid JSON"),
+])  # fmt: skip
+def test_a_damaged_clip_is_named(damage, message, tmp_path, capsys):
+    import shutil
+    from pathlib import Path
+
+    clip = tmp_path / "clip"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "assets" / "clips" / "flat_walk", clip)
+    damage(clip)
+    assert cli.main(["export", str(clip), "--format", "csv", "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and not (tmp_path / "out").exists()
