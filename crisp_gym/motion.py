@@ -239,6 +239,42 @@ class Motion:
         return motion.in_humanoid_order()
 
 
+MAX_ROOT_DISTANCE = 1e4
+"""m: a root farther than this from the origin is a unit or parsing error, not a capture."""
+MAX_ROOT_SPEED = 30.0
+"""m/s: 2.5x a sprinter's top speed."""
+MAX_HINGE_SPEED = 300.0
+"""rad/s: 17,000 deg/s; raw captured wrists flicker at up to 113 rad/s (CMU 131_01)."""
+MAX_HINGE_ANGLE = 1e3
+"""rad: hinge tracks are unwrapped for continuity (a turning knee of a video estimate reaches 4π),
+so only a corrupt value lies beyond this."""
+
+
+def check_plausible(motion: Motion) -> Motion:
+    """``motion`` if a body could do it, else ValueError naming the first frame and joint that
+    no body can reach: a root beyond :data:`MAX_ROOT_DISTANCE`, moving faster than
+    :data:`MAX_ROOT_SPEED`, a hinge beyond :data:`MAX_HINGE_ANGLE` or turning faster than
+    :data:`MAX_HINGE_SPEED`."""
+    m = motion.in_humanoid_order()
+    distance = np.abs(m.root_pos).max(axis=1)  # not a norm: squaring 1e300 overflows
+    if distance.max() > MAX_ROOT_DISTANCE:
+        k = int(np.argmax(distance > MAX_ROOT_DISTANCE))
+        raise ValueError(f"frame {k}: the root is {distance[k]:.3g} m from the origin "
+                         f"(at most {MAX_ROOT_DISTANCE:g}): wrong units or a corrupt file?")
+    speed = np.linalg.norm(np.diff(m.root_pos, axis=0), axis=1) * m.fps
+    if speed.max() > MAX_ROOT_SPEED:
+        k = int(np.argmax(speed))
+        raise ValueError(f"frame {k}: the root moves at {speed[k]:.3g} m/s (at most {MAX_ROOT_SPEED:g}): "
+                         f"wrong units, frame rate or a jump in the file?")
+    checks = (("angle", np.abs(m.dof_pos), MAX_HINGE_ANGLE, "rad"),
+              ("speed", np.abs(np.diff(m.dof_pos, axis=0)) * m.fps, MAX_HINGE_SPEED, "rad/s"))
+    for what, values, limit, unit in checks:
+        if values.max() > limit:
+            k, j = np.unravel_index(int(np.argmax(values)), values.shape)
+            raise ValueError(f"frame {k}: hinge {DOF_NAMES[j]} {what} {values[k, j]:.3g} {unit} (at most {limit:.3g})")
+    return motion
+
+
 def local_angular_velocity(rotations: Rotation, dt: float) -> np.ndarray:
     """(T, 3) body-frame angular velocity of a rotation sequence, by central differences."""
     n = len(rotations)

@@ -7,16 +7,17 @@ SMPL motions estimated from videos are used when ``../shared/data`` is present.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from crisp_gym.export.motion_formats import amass_layout, beyondmimic_layout, smpl_layout, write_motion_npz
-from crisp_gym.humanoid import BODY_NAMES, build_humanoid
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.import_motion import ImportMotionArgs, import_motion, main, read_motion
 from crisp_gym.metrics import sole_points
-from crisp_gym.motion import Motion, compute_kinematics, ground_stance, planted_feet
+from crisp_gym.motion import Motion, check_plausible, compute_kinematics, ground_stance, planted_feet
 from crisp_gym.registry import check_clip_name, list_clips, load_clip, plain_clip_name, user_registry_path
 from crisp_gym.smpl import SMPL_TO_OURS, detect_up_axis
 
@@ -227,3 +228,17 @@ def test_impossible_frame_rates_fail_before_resampling(rate, message, walk, mode
     path = _amass_file(tmp_path / "bad_rate.npz", walk, fps=rate)
     with pytest.raises(ValueError, match=message):
         read_motion(path, model=model)
+
+
+@pytest.mark.parametrize("corrupt, message", [
+    (lambda m: m.root_pos.__setitem__((40, 0), 5.6e298), "frame 40: the root is 5.6e\\+298 m"),
+    (lambda m: m.root_pos.__setitem__((slice(40, None), 2), m.root_pos[40:, 2] + 3.0), "frame 39: the root moves at"),
+    (lambda m: m.dof_pos.__setitem__((70, DOF_NAMES.index("R_Elbow_y")), 40.0), "frame 69: hinge R_Elbow_y speed"),
+])  # fmt: skip
+def test_motions_no_body_can_do_are_refused_naming_frame_and_joint(corrupt, message, walk, model, tmp_path):
+    motion = replace(walk, root_pos=walk.root_pos.copy(), dof_pos=walk.dof_pos.copy(), contacts=None)
+    corrupt(motion)
+    path = motion.save(tmp_path / "motion.npz")
+    with pytest.raises(ValueError, match=message):
+        read_motion(path, model=model)
+    check_plausible(walk)  # the bundled walk passes
