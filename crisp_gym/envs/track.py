@@ -19,10 +19,12 @@ _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
 
 def make_config(config: TrackConfig | None, overrides: dict[str, Any]) -> TrackConfig:
     """``config`` (or the default) with keyword overrides; unknown keywords are an error."""
-    unknown = set(overrides) - _CONFIG_FIELDS
+    unknown = sorted(set(overrides) - _CONFIG_FIELDS)
     if unknown:
-        raise TypeError(f"unknown CrispTrack-v0 options {sorted(unknown)}; valid ones are "
-                        f"{sorted(_CONFIG_FIELDS)}")
+        # Python's own wording: wrappers such as TorchRL's GymEnv try an option (frameskip) and
+        # fall back when the env answers with it
+        raise TypeError(f"CrispTrack-v0 got an unexpected keyword argument {unknown[0]!r} (all unknown: {unknown}); "
+                        f"valid ones are {sorted(_CONFIG_FIELDS)}")
     return replace(config or default_config(), **overrides)
 
 
