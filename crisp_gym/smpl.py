@@ -77,16 +77,17 @@ def read_smpl_source(source: str | Path | Mapping[str, np.ndarray]) -> dict[str,
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise ValueError(f"{path} holds a single array; expected an npz with global_orient, "
                          "body_pose and transl")
+    arrays = {}
     with data:
-        return {k: data[k] for k in data.files if not _needs_pickle(data, k)}
+        for key in data.files:
+            try:
+                arrays[key] = data[key]
+            except ValueError:  # an object array: loading it would run a pickle
+                continue
+    return arrays
 
 
-def _needs_pickle(data: np.lib.npyio.NpzFile, key: str) -> bool:
-    try:
-        data[key]
-    except ValueError:  # an object array: loading it would run a pickle
-        return True
-    return False
+_AMASS_WIDTHS = (72, 156, 165)
 
 
 def _standard_keys(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -111,8 +112,6 @@ def _standard_keys(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         out["global_orient"], out["body_pose"] = pose[:, :3], pose[:, 3:72 if pose.shape[1] == 72 else 66]
     return out
 
-
-_AMASS_WIDTHS = (72, 156, 165)
 
 
 def detect_up_axis(params: Mapping[str, np.ndarray]) -> tuple[str, dict[str, float]]:
