@@ -148,6 +148,19 @@ def reconstruct(frames: Frames, motion: MotionInput | None = None, config: Recon
                           completion=completion, timings=timings, frames=aligned.frames)
 
 
+def no_box_reason(result: Reconstruction, frames: Frames) -> str:
+    """Why a reconstruction produced no primitive, from the planar fit's counts, for the user."""
+    planes, cfg = result.planes, ReconstructConfig().planes
+    valid = float(frames.valid.mean())
+    if planes.segments == 0:
+        return (f"no box survived: no frame had a planar segment ({frames.num_frames} frames, {100 * valid:.0f} % "
+                f"valid depth pixels); is the depth a depth map, in metres (or rescaled by the motion)?")
+    return (f"no box survived: {planes.segments} planar segments formed {planes.groups} planar groups, none "
+            f"seen in at least {cfg.min_group_frames} of the {frames.num_frames} frames with "
+            f"{cfg.min_group_points} inlier points and a box's size (filtered before fitting: {planes.dropped}); "
+            f"a short or nearly still video sees each surface in few frames")
+
+
 def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bool = False) -> Path:
     """A scene-only directory (no motion): ``scene.xml``, ``primitives.json``, ``meta.json``, atomically."""
     with atomic_directory(directory, overwrite) as tmp:
@@ -215,6 +228,8 @@ def run(args: ReconstructArgs) -> Path:
     motion = None if args.motion is None else read_motion(args.motion, frame=args.motion_frame)
     read_time = time.perf_counter() - start
     result = reconstruct(frames, motion, contacts=contacts, metric=args.metric, vertex_map=args.vertex_map)
+    if not result.boxes:
+        raise ValueError(no_box_reason(result, frames))
     meta = result.meta() | {"name": name, "input": str(args.input.resolve()),
                             "motion_input": None if args.motion is None else str(args.motion.resolve()),
                             "contact_source": str(args.contacts), "fps": frames.fps,

@@ -129,3 +129,19 @@ def test_bad_names_and_outputs_fail_before_any_work(argv, message, tmp_path, mon
     assert pipeline.main([str(tmp_path / "missing.npz"), *argv]) == 2
     assert message in capsys.readouterr().out and not read
     assert not (tmp_path / "clips").exists() and not (tmp_path.parent / "escape").exists()
+
+
+def test_no_box_is_an_error_that_says_why(stairs_input, tmp_path):
+    """Two frames of the stairs video: the floor aligns, but a planar group must be seen in three
+    frames, so nothing survives; the run stops with the planar fit's counts instead of writing
+    an empty scene."""
+    with np.load(stairs_input / "input.npz") as data:
+        arrays = {k: data[k][:2] if k in ("depths", "cam_c2w", "images", "masks") else data[k] for k in data.files}
+    scale = load_ground_truth(stairs_input).scale
+    arrays["depths"] = arrays["depths"].astype(np.float32) * scale
+    arrays["cam_c2w"] = arrays["cam_c2w"].copy()
+    arrays["cam_c2w"][:, :3, 3] *= scale
+    np.savez(tmp_path / "input.npz", **arrays)
+    with pytest.raises(ValueError, match="no box survived: .* none seen in at least 3 of the 2 frames"):
+        pipeline.run(pipeline.ReconstructArgs(input=tmp_path / "input.npz", output=tmp_path / "scene", metric=True))
+    assert not (tmp_path / "scene").exists()
