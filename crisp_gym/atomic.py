@@ -5,11 +5,19 @@ An interrupted run (Ctrl-C, a crash, a full disk) never leaves a half-written cl
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+
+def _umask() -> int:
+    """The process's umask (reading it means setting it; set it straight back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextmanager
@@ -21,6 +29,7 @@ def atomic_directory(directory: str | Path, overwrite: bool = False) -> Iterator
         raise FileExistsError(f"{directory} exists; pass overwrite=True (--overwrite) to replace it")
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+    tmp.chmod(0o777 & ~_umask())  # mkdtemp's 0700 would make the result private, unlike a mkdir
     try:
         yield tmp
         if directory.exists():

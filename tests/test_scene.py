@@ -60,6 +60,8 @@ def test_surface_points_lie_on_faces_with_outward_normals():
 def test_clip_write_is_atomic_and_registry_resolves(tmp_path):
     motion = sway_motion(frames=10)
     path = write_clip(tmp_path / "c", _boxes(), motion, {"source": "test"})
+    (tmp_path / "plain").mkdir()
+    assert path.stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777  # as a mkdir, not 0700
     clip = load_clip_dir(path)
     assert clip.meta["num_primitives"] == 2 and clip.meta["num_contact_primitives"] == 1
     with pytest.raises(FileExistsError):
