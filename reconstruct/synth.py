@@ -1022,7 +1022,7 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     singular and ab/adduction would swing wildly.
 
     The body lowers itself onto, stays on, and rises from the front of the seat, where under
-    the lean the centre of mass is just behind the heels (:func:`_perched_positions`,
+    the lean the centre of mass is just behind the heels (:func:`_perched_position`,
     :data:`_RISE_COM_MARGIN`; the pelvis already moves forward as the thighs leave the seat).
     Sitting straight back onto the seat and rising from it put the centre of mass 9-10 cm
     behind the heels (the first generator): no ground force lowers or lifts a body from there
@@ -1040,7 +1040,7 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     t2, t3 = t1 + down, t1 + down + hold
     t4 = t3 + up
     # The least lean needs the pelvis furthest forward; the other lean is then over the feet too.
-    seated_s, z_seat = max(_perched_positions(seat, seated_pitch, (lean_down, lean_up), gait, skel))
+    seated_s, z_seat = _perched_position(seat, seated_pitch, min(lean_down, lean_up), gait, skel)
     plan.pose(0.0, _PELVIS_AHEAD, 0.0, stand)
     plan.pose(t1, _PELVIS_AHEAD, 0.0, stand)
     # Down: lean, lower onto the seat's front, then sit up.
@@ -1057,37 +1057,29 @@ def _add_sit(plan: _Plan, seat: SeatParams, gait: GaitParams, skel: _Skeleton, r
     return t4
 
 
-def _perched_positions(seat: SeatParams, pitch: float, leans: tuple[float, ...], gait: GaitParams,
-                       skel: _Skeleton) -> list[tuple[float, float]]:
-    """Per spine lean in ``leans``, the pelvis (s, z) on the seat from which the body can rise
-    (and onto which it can lower itself) leaning so.
+def _perched_position(seat: SeatParams, pitch: float, lean: float, gait: GaitParams,
+                      skel: _Skeleton) -> tuple[float, float]:
+    """The pelvis (s, z) on the seat from which the body can rise (and onto which it can lower
+    itself) with the spine leaning by ``lean``.
 
-    For each lean, the first position forward (1 cm steps, the pelvis kept
-    :data:`_SEAT_EDGE_CLEARANCE` behind the seat's front) that puts the centre of mass
-    :data:`_RISE_COM_MARGIN` in front of the heels. One scan serves every lean: the seated
-    height at each step (a bisection) is the costly part.
+    The first position forward (1 cm steps, the pelvis kept :data:`_SEAT_EDGE_CLEARANCE` behind
+    the seat's front) that puts the centre of mass :data:`_RISE_COM_MARGIN` in front of the heels.
     """
     model, _ = _seat_model(seat, skel.stature)
     data = mujoco.MjData(model)
     feet = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
             and model.body(model.geom_bodyid[g]).name in FEET]
-    found: dict[float, tuple[float, float]] = {}
     for pelvis_s in np.arange(seat.front - _PERCH_SCAN_DEPTH, seat.front - _SEAT_EDGE_CLEARANCE + 1e-9, 0.01):
         z = _seated_height(seat, 0.0, pelvis_s, pitch, gait, skel)
-        for lean in leans:
-            if lean in found:
-                continue
-            frames = _standing_frames(np.full(2, pelvis_s), np.full(2, z), np.full(2, pitch), 0.0, gait, skel,
-                                      spine=lean, arms=0.6 * lean)
-            data.qpos[:] = _solve(frames, skel, gait, 30.0, skel.leg * 0.9999).qpos()[0]
-            mujoco.mj_kinematics(model, data)
-            mujoco.mj_comPos(model, data)
-            heels = min((data.geom_xpos[g] - np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g])[0]
-                        for g in feet)
-            if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
-                found[lean] = (float(pelvis_s), z)
-        if len(found) == len(set(leans)):
-            return [found[lean] for lean in leans]
+        frames = _standing_frames(np.full(2, pelvis_s), np.full(2, z), np.full(2, pitch), 0.0, gait, skel,
+                                  spine=lean, arms=0.6 * lean)
+        data.qpos[:] = _solve(frames, skel, gait, 30.0, skel.leg * 0.9999).qpos()[0]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        heels = min((data.geom_xpos[g] - np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g])[0]
+                    for g in feet)
+        if data.subtree_com[model.body("Pelvis").id][0] - heels >= _RISE_COM_MARGIN:
+            return float(pelvis_s), z
     raise RuntimeError(f"no pelvis position on this seat (front at {seat.front:.2f} m) puts the centre of "
                        f"mass over the feet")
 
