@@ -27,21 +27,19 @@ laid flat, :func:`crisp_gym.motion.level_feet`), or by one offset with ``--groun
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
 import mujoco
 import numpy as np
-import platformdirs
 import tyro
 from tqdm.auto import tqdm
 
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, StanceGrounding, check_plausible, ground, ground_stance, level_feet
-from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
+from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip, user_clips_dir
 from crisp_gym.scene import floor_box
 
 MOTION_SUFFIXES = (".bvh", ".npz", ".csv")
@@ -212,7 +210,7 @@ def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
 def import_motion(args: ImportMotionArgs) -> list[Path]:
     """Run ``crisp import-motion``; returns the clip directories written."""
     check_clip_name(args.name)
-    clips_dir = Path(platformdirs.user_data_dir("crisp-gym")) / "clips"
+    clips_dir = user_clips_dir()
     model = build_humanoid()
     if not args.file.is_dir():
         out = args.output or clips_dir / args.name
@@ -240,10 +238,6 @@ def import_motion(args: ImportMotionArgs) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = tyro.cli(ImportMotionArgs, args=argv, prog="crisp import-motion")
-    try:
-        import_motion(args)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        print(f"crisp import-motion: {err}", file=sys.stderr)
-        return 2
+    """``crisp import-motion`` (user errors are reported by :mod:`crisp_gym.cli`)."""
+    import_motion(tyro.cli(ImportMotionArgs, args=argv, prog="crisp import-motion"))
     return 0

@@ -35,6 +35,11 @@ def user_registry_path() -> Path:
     return Path(platformdirs.user_data_dir("crisp-gym")) / "registry.yaml"
 
 
+def user_clips_dir() -> Path:
+    """Where ``crisp import-motion`` and ``crisp synth-clips --kind`` write clips by default."""
+    return Path(platformdirs.user_data_dir("crisp-gym")) / "clips"
+
+
 def _read(path: Path) -> dict[str, dict]:
     if not path.is_file():
         return {}

@@ -1245,18 +1245,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: {path}")
         print(f"registry: {args.registry}")
         return 0
-    import platformdirs
-
-    from crisp_gym.registry import check_clip_name, register_clip
+    from crisp_gym.registry import check_clip_name, register_clip, user_clips_dir
 
     name = check_clip_name(args.name or f"{args.kind}_s{args.seed}")
-    out = (args.out_dir or Path(platformdirs.user_data_dir("crisp-gym")) / "clips") / name
+    out = (args.out_dir or user_clips_dir()) / name
     boxes, motion, meta = make_clip(args.kind, args.seed)
-    try:
-        write_clip(out, boxes, motion, {**meta, "name": name}, overwrite=args.overwrite)
-    except FileExistsError as err:
-        print(f"crisp synth-clips: {err}")
-        return 2
+    write_clip(out, boxes, motion, {**meta, "name": name}, overwrite=args.overwrite)  # errors: crisp_gym.cli
     registry = register_clip(name, out, tags=["synthetic", "generated", args.kind])
     print(f"wrote clip '{name}' ({args.kind}, seed {args.seed}, {motion.num_frames} frames) to {out}\n"
           f"registered in {registry}")

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crisp_gym import cli
 from crisp_gym.export.motion_formats import amass_layout, beyondmimic_layout, smpl_layout, write_motion_npz
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
-from crisp_gym.import_motion import ImportMotionArgs, import_motion, main, read_motion
+from crisp_gym.import_motion import ImportMotionArgs, import_motion, read_motion
 from crisp_gym.metrics import sole_points
 from crisp_gym.motion import Motion, check_plausible, compute_kinematics, ground_stance, planted_feet
 from crisp_gym.registry import check_clip_name, list_clips, load_clip, plain_clip_name, user_registry_path
@@ -173,7 +174,7 @@ def test_folder_import_names_clips_and_reports_failures(walk, tmp_path, capsys):
     _amass_file(folder / "walk_two.npz", walk, fps=30.0)
     (folder / "broken.npz").write_bytes(b"not an archive")
     (folder / "notes.txt").write_text("ignored")
-    code = main([str(folder), "--name", "take", "-o", str(tmp_path / "clips")])
+    code = cli.main(["import-motion", str(folder), "--name", "take", "-o", str(tmp_path / "clips")])
     assert code == 2  # one file failed
     err = capsys.readouterr().err
     assert "broken.npz" in err and "not a readable npz" in err

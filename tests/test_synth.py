@@ -169,5 +169,8 @@ def test_cli_generates_and_registers_one_more_clip(tmp_path, capsys):
     boxes, motion, _ = _clip("platform_step", 4)
     assert clip.path == tmp_path / "step4" and clip.meta["seed"] == 4
     np.testing.assert_allclose(clip.motion.root_pos, motion.root_pos, atol=1e-6)
-    assert synth.main(["--kind", "platform_step", "--seed", "4", "--name", "step4", "--out-dir", str(tmp_path)]) == 2
-    assert "exists" in capsys.readouterr().out
+    from crisp_gym import cli
+
+    assert cli.main(["synth-clips", "--kind", "platform_step", "--seed", "4", "--name", "step4",
+                     "--out-dir", str(tmp_path)]) == 2
+    assert "exists" in capsys.readouterr().err
