@@ -139,10 +139,8 @@ def export(config: ExportConfig) -> list[Path]:
     """
     formats = config.formats()
     output = Path(config.output)
-    if output.exists() and not config.overwrite:
-        raise FileExistsError(f"{output} exists; pass --overwrite to replace it")
     clip = None if set(formats) <= set(POLICY_FORMATS) else load_clip(config.source)  # fail before writing
-    with atomic_directory(output, config.overwrite) as tmp:
+    with atomic_directory(output, config.overwrite) as tmp:  # refuses an existing output first
         if clip is None:
             from crisp_gym.export.policy import export_checkpoint  # torch only when a policy is exported
 
