@@ -207,13 +207,20 @@ def _tum_poses(path: Path, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     stamps, values = stamps[order], values[order]
     inside = (times >= stamps[0]) & (times <= stamps[-1])
     t = times[inside]
-    poses = np.tile(np.eye(4), (len(t), 1, 1))
-    poses[:, :3, 3] = np.stack([np.interp(t, stamps, values[:, i]) for i in range(3)], axis=1)
+    translation = np.stack([np.interp(t, stamps, values[:, i]) for i in range(3)], axis=1)
     if len(stamps) > 1:
-        poses[:, :3, :3] = Slerp(stamps, Rotation.from_quat(values[:, 3:7]))(t).as_matrix()
+        rotation = Slerp(stamps, Rotation.from_quat(values[:, 3:7]))(t)
     else:
-        poses[:, :3, :3] = Rotation.from_quat(values[0, 3:7]).as_matrix()
-    return poses, inside
+        rotation = Rotation.from_quat(np.repeat(values[:1, 3:7], len(t), axis=0))
+    return _pose_matrices(translation, rotation), inside
+
+
+def _pose_matrices(translation: np.ndarray, rotation: Rotation) -> np.ndarray:
+    """(N, 4, 4) camera → world matrices from (N, 3) positions and N rotations."""
+    poses = np.tile(np.eye(4), (len(translation), 1, 1))
+    poses[:, :3, 3] = translation
+    poses[:, :3, :3] = rotation.as_matrix()
+    return poses
 
 
 def _natural_key(path: Path) -> tuple:
@@ -231,10 +238,7 @@ def _pose_lines(path: Path, count: int) -> np.ndarray:
     if values.ndim != 2 or values.shape != (count, 7):
         raise ValueError(f"{path}: expected {count} lines 'tx ty tz qx qy qz qw' (one per frame), "
                          f"got {len(rows)} lines of {values.shape[1] if values.ndim == 2 else '?'} numbers")
-    poses = np.tile(np.eye(4), (count, 1, 1))
-    poses[:, :3, 3] = values[:, :3]
-    poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
-    return poses
+    return _pose_matrices(values[:, :3], Rotation.from_quat(values[:, 3:]))
 
 
 def _folder_camera(folder: Path, default: tuple[float, float, float, float], default_scale: float,
