@@ -27,28 +27,21 @@ captured hands flicker (CMU 131_01's right wrist turns at up to 6,500 °/s relat
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, default_rest_joints, joint_range_deg
-from crisp_gym.motion import (
-    Motion, StanceGrounding, ground, ground_stance, level_feet, low_pass_joints, rotations_to_hinge_angles,
-)
-
-log = logging.getLogger(__name__)
+from crisp_gym.humanoid import BODY_NAMES, PARENTS, default_rest_joints
+from crisp_gym.motion import Motion, StanceGrounding
+from crisp_gym.retarget import motion_from_rotations
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 _ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
-
-FLICKERING_BODIES: tuple[str, ...] = ("L_Elbow", "R_Elbow", "L_Wrist", "R_Wrist", "L_Hand", "R_Hand")
-"""Bodies whose captured rotations are low-passed on import: hand markers are the noisiest."""
 
 
 @dataclass(frozen=True)
@@ -528,7 +521,7 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     :func:`~crisp_gym.motion.stance_floor`); ``None`` keeps the feet as retargeted and shifts the
     whole motion by one offset instead (:func:`~crisp_gym.motion.ground`). Clipping into the
     joint ranges comes after the feet are laid flat. ``low_pass_hz`` low-passes the elbows', wrists'
-    and hands' hinge angles first (:data:`FLICKERING_BODIES`,
+    and hands' hinge angles first (:data:`~crisp_gym.retarget.FLICKERING_BODIES`,
     :func:`~crisp_gym.motion.low_pass_joints`; ``None``: as captured).
     """
     skeleton = clip.skeleton
@@ -544,41 +537,16 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
 
     positions, world = bvh_forward_kinematics(clip)
     world = np.einsum("ab,tjbc,dc->tjad", to_ours, world, to_ours)
-    t = clip.num_frames
-    glob: dict[str, np.ndarray] = {}
-    local = np.empty((t, len(BODY_NAMES), 3, 3))
+    rotations = np.empty((clip.num_frames, len(BODY_NAMES), 3, 3))
     for i, body in enumerate(BODY_NAMES):
-        parent = PARENTS[body]
-        if body in mapping:
-            glob[body] = world[:, mapping[body]] @ align[body]
-        else:
-            glob[body] = glob[parent]
-        local[:, i] = glob[body] if parent is None else np.swapaxes(glob[parent], 1, 2) @ glob[body]
-
+        # An unmapped body keeps its parent's orientation (its local rotation is the identity).
+        rotations[:, i] = world[:, mapping[body]] @ align[body] if body in mapping else \
+            rotations[:, BODY_NAMES.index(PARENTS[body])]
     root_pos = positions[:, mapping["Pelvis"]] @ to_ours.T * unit_scale
-    root_quat = Rotation.from_matrix(glob["Pelvis"]).as_quat(scalar_first=True)
-    motion = Motion(fps=clip.fps, root_pos=root_pos, root_quat=root_quat,
-                    dof_pos=rotations_to_hinge_angles(local[:, 1:]).reshape(t, -1))
-    if low_pass_hz is not None:
-        motion = low_pass_joints(motion, low_pass_hz, FLICKERING_BODIES)
-    model = model if model is not None else build_humanoid()
-    if grounding is not None:
-        motion = level_feet(motion, model, grounding)
-    clipped_fraction, max_clip = 0.0, 0.0
-    if clip_to_range:
-        ranges = np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
-        clipped = np.clip(motion.dof_pos, ranges[:, 0], ranges[:, 1])
-        moved = np.abs(clipped - motion.dof_pos)
-        clipped_fraction = float(np.mean(moved > 1e-9))
-        max_clip = float(np.rad2deg(moved.max()))
-        motion = replace(motion, dof_pos=clipped)
-    grounded = ground(motion, model) if grounding is None else ground_stance(motion, model, grounding)
-    offset = grounded.root_pos[:, 2] - motion.root_pos[:, 2]
-    if clipped_fraction > 0:
-        log.info("BVH retarget clipped %.2f%% of hinge values into range (at most %.1f deg)",
-                 100 * clipped_fraction, max_clip)
-    return BvhRetarget(grounded, float(unit_scale), {b: skeleton.names[k] for b, k in mapping.items()},
-                       to_ours, clipped_fraction, max_clip, offset, up_axis)
+    result = motion_from_rotations(rotations, root_pos, clip.fps, model=model, grounding=grounding,
+                                   clip_to_range=clip_to_range, low_pass_hz=low_pass_hz)
+    return BvhRetarget(result.motion, float(unit_scale), {b: skeleton.names[k] for b, k in mapping.items()},
+                       to_ours, result.clipped_fraction, result.max_clip_deg, result.ground_offset, up_axis)
 
 
 def load_bvh(path: str | Path, *, unit_scale: float | None = None, up_axis: str = "auto",

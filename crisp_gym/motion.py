@@ -284,13 +284,20 @@ def local_angular_velocity(rotations: Rotation, dt: float) -> np.ndarray:
     return (rotations[prev].inv() * rotations[nxt]).as_rotvec() / span[:, None]
 
 
-def rotations_to_hinge_angles(rotations: np.ndarray) -> np.ndarray:
+_MAX_BRANCH_STEP = np.deg2rad(45.0)  # how much farther than the nearest triple the in-range one may be
+
+
+def rotations_to_hinge_angles(rotations: np.ndarray, ranges: np.ndarray | None = None) -> np.ndarray:
     """(T, J, 3) continuous x-y-z hinge angles for (T, J, 3, 3) local rotation matrices.
 
     Every rotation has two intrinsic XYZ Euler triples, ``(a, b, c)`` and
     ``(a + π, π - b, c + π)``; the first frame takes the one nearer the rest pose, and each
     later frame the one (with 2π unwrapping) nearest the previous frame. This keeps a knee
-    flexed past 90° a knee flexion rather than a flipped twist.
+    flexed past 90° a knee flexion rather than a flipped twist. With ``ranges`` ((J, 3, 2)
+    radians), a triple's distance outside them counts ten times its distance from the previous
+    frame, as long as it is at most 45° farther than the nearest: crossing ``b = ±90°`` (a hip
+    flexed to the horizontal) the two triples come close, and continuity alone can follow the
+    one the joint cannot reach.
     """
     rotations = np.asarray(rotations, dtype=float)
     t, j = rotations.shape[:2]
@@ -299,18 +306,25 @@ def rotations_to_hinge_angles(rotations: np.ndarray) -> np.ndarray:
     second[..., 1] = np.pi - first[..., 1]
     wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
     first, second = wrap(first), wrap(second)
+
+    def outside(angles: np.ndarray) -> np.ndarray:
+        if ranges is None:
+            return np.zeros(j)
+        excess = np.maximum(ranges[..., 0] - angles, 0.0) + np.maximum(angles - ranges[..., 1], 0.0)
+        return 10.0 * excess.sum(axis=-1)
+
     out = np.empty_like(first)
     previous = np.zeros((j, 3))
     for k in range(t):
-        candidates = []
-        for option in (first[k], second[k]):
-            unwrapped = previous + wrap(option - previous)
-            candidates.append(unwrapped)
-        dist = [np.linalg.norm(c - previous, axis=1) for c in candidates]
         if k == 0:  # nearest the rest pose, without unwrapping
             candidates = [first[0], second[0]]
-            dist = [np.linalg.norm(c, axis=1) for c in candidates]
-        out[k] = np.where((dist[0] <= dist[1])[:, None], candidates[0], candidates[1])
+        else:
+            candidates = [previous + wrap(option - previous) for option in (first[k], second[k])]
+        dist = [np.linalg.norm(c - previous, axis=1) for c in candidates]
+        # Never jump to reach the range: a step that large would whip the simulated joint round.
+        near = [d <= np.minimum(*dist) + _MAX_BRANCH_STEP for d in dist]
+        cost = [np.where(n, d + outside(c), np.inf) for n, d, c in zip(near, dist, candidates)]
+        out[k] = np.where((cost[0] <= cost[1])[:, None], candidates[0], candidates[1])
         previous = out[k]
     return out
 

@@ -450,6 +450,79 @@ def read_frames(path: str | Path, progress: bool = True, rgbd: RgbdFolderConfig 
     raise FileNotFoundError(f"no depth video at {path} (expected an .npz or an RGB-D folder)")
 
 
+# --------------------------------------------------------------------------- plain video
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+
+
+def _image_files(folder: Path) -> list[Path]:
+    return sorted((f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
+
+
+def is_plain_video(path: str | Path) -> bool:
+    """A video file, or a folder of images with no depth (not an RGB-D or MegaSAM input)."""
+    path = Path(path)
+    if path.is_file():
+        return path.suffix.lower() in VIDEO_SUFFIXES
+    if not path.is_dir() or (path / "input.npz").is_file() or (path / "rgb.txt").is_file():
+        return False
+    return not (path / "depth").is_dir() and bool(_image_files(path))
+
+
+def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, max_frames: int = 3600,
+               progress: bool = True) -> tuple[np.ndarray, float]:
+    """(T, H, W, 3) uint8 RGB frames of a video file or an image folder, downscaled so the long
+    side is at most ``max_side``, and the frame rate (a file's own; an image folder's is ``fps``,
+    else :data:`DEFAULT_FPS` with a warning). More than ``max_frames`` frames is an error."""
+    import cv2  # noqa: PLC0415 - only this reader needs it
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no video at {path}")
+    if path.is_dir():
+        files = _image_files(path)
+        if not files:
+            raise ValueError(f"{path} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        if fps is None:
+            log.warning("%s: an image folder has no frame rate; assuming %.0f fps (pass --fps)", path, DEFAULT_FPS)
+        rate = float(fps or DEFAULT_FPS)
+        if len(files) > max_frames:
+            raise ValueError(f"{path} has {len(files)} images, more than {max_frames}; trim it first")
+        source = (_read_image(f, "image") for f in files)
+        total = len(files)
+    else:
+        if path.suffix.lower() not in VIDEO_SUFFIXES:
+            raise ValueError(f"{path}: not a video file ({', '.join(VIDEO_SUFFIXES)})")
+        try:
+            meta = iio.immeta(path)
+        except Exception as err:  # noqa: BLE001 - any decoder failure is an unreadable file
+            raise ValueError(f"{path}: cannot read the video ({err})") from None
+        rate = float(fps or meta.get("fps") or DEFAULT_FPS)
+        total = None
+        source = iio.imiter(path)
+    frames = []
+    for image in tqdm(source, total=total, desc="frames", unit="frame", disable=not progress):
+        image = np.asarray(image)
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, axis=2)
+        image = image[..., :3].astype(np.uint8)
+        scale = max_side / max(image.shape[:2])
+        if scale < 1:
+            image = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)),
+                               interpolation=cv2.INTER_AREA)
+        if frames and image.shape != frames[0].shape:
+            raise ValueError(f"{path}: frame {len(frames)} is {image.shape[:2]}, the first {frames[0].shape[:2]}")
+        frames.append(image)
+        if len(frames) > max_frames:
+            raise ValueError(f"{path} has more than {max_frames} frames; trim it first")
+    if len(frames) < 2:
+        raise ValueError(f"{path}: a video needs at least 2 frames, got {len(frames)}")
+    if not np.isfinite(rate) or rate <= 0:
+        raise ValueError(f"{path}: frame rate must be positive, got {rate}")
+    return np.stack(frames), rate
+
+
 # --------------------------------------------------------------------------- human motion
 
 

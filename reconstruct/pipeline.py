@@ -46,7 +46,7 @@ from reconstruct.contact import (
     load_external_contacts,
 )
 from reconstruct.frames import Frames
-from reconstruct.io import MotionInput, RgbdFolderConfig, read_frames, read_motion
+from reconstruct.io import MotionInput, RgbdFolderConfig, is_plain_video, read_frames, read_motion, read_video
 from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
 
 
@@ -175,7 +175,8 @@ class ReconstructArgs:
     """Reconstruct a simulation-ready clip from a depth video and the human's motion."""
 
     input: tyro.conf.Positional[Path]
-    """MegaSAM-style npz (depths, intrinsic, cam_c2w[, images, masks]) or an RGB-D folder (TUM / Redwood)."""
+    """MegaSAM-style npz (depths, intrinsic, cam_c2w[, images, masks]), an RGB-D folder (TUM / Redwood), or a
+    plain video: an mp4/mov file or a folder of images (the CPU video path, reconstruct.video)."""
     motion: Path | None = None
     """The human's motion: camera-frame SMPL parameters (GVHMR-style npz/.pt), a BVH or a motion.npz."""
     motion_frame: Literal["camera", "camera0"] = "camera"
@@ -194,6 +195,12 @@ class ReconstructArgs:
     """RGB-D folders: FX FY CX CY of the depth images in pixels (default: the folder's camera file or layout)."""
     depth_scale: float | None = None
     """RGB-D folders: depth image units per metre, e.g. 1000 for millimetres (default: as for --intrinsics)."""
+    fps: float | None = None
+    """Plain videos: the frame rate of an image folder (a video file's own is read from it; default 30)."""
+    max_side: int = 960
+    """Plain videos: frames are downscaled so their long side is at most this many pixels."""
+    seed: int = 0
+    """Plain videos: seed of the RANSAC fits and COLMAP (runs are reproducible)."""
     register: bool = False
     """Add the clip to the user registry under NAME."""
     overwrite: bool = False
@@ -223,6 +230,8 @@ def run(args: ReconstructArgs) -> Path:
     if isinstance(contacts, Path) and not contacts.is_file():
         raise FileNotFoundError(f"--contacts {contacts}: expected 'kinematic', 'none' or an existing contacts file")
 
+    if args.motion is None and is_plain_video(args.input):
+        return run_video(args, name, out)
     start = time.perf_counter()
     frames = read_frames(args.input, rgbd=RgbdFolderConfig(intrinsics=args.intrinsics, depth_scale=args.depth_scale))
     motion = None if args.motion is None else read_motion(args.motion, frame=args.motion_frame)
@@ -249,11 +258,33 @@ def run(args: ReconstructArgs) -> Path:
     return out
 
 
+def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
+    """The plain-video path (:mod:`reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``."""
+    from reconstruct.video import SfmConfig, VideoConfig, reconstruct_video  # noqa: PLC0415 - optional extra
+    from reconstruct.video_report import write_comparison  # noqa: PLC0415
+
+    start = time.perf_counter()
+    frames, fps = read_video(args.input, max_side=args.max_side, fps=args.fps)
+    read_time = time.perf_counter() - start
+    config = VideoConfig(sfm=SfmConfig(seed=args.seed))
+    result = reconstruct_video(frames, fps, config, seed=args.seed)
+    meta = {"name": name, "source": "reconstruct-video", "input": str(args.input.resolve()), "video_fps": fps,
+            "image_size": [int(frames.shape[2]), int(frames.shape[1])], "quality": result.flags,
+            "timings": {"read": round(read_time, 3)} | {k: round(v, 3) for k, v in result.timings.items()},
+            "intrinsic": result.cameras.intrinsic.round(3).tolist()}
+    if result.completion is not None:
+        meta["contact_primitives"] = result.completion.meta()
+    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite)
+    start = time.perf_counter()
+    write_comparison(result, frames, fps, out / "comparison.mp4")
+    print(f"wrote clip '{name}': {len(result.boxes)} primitives, {result.motion.num_frames} frames, scale "
+          f"{result.scale:.4g} m per SfM unit{' (fixed camera)' if result.cameras.static else ''}, to {out} "
+          f"(comparison video in {time.perf_counter() - start:.0f} s)")
+    if args.register:
+        print(f"registered in {register_clip(name, out, tags=['reconstructed', 'video'])}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = tyro.cli(ReconstructArgs, args=argv, prog="crisp reconstruct")
-    try:
-        run(args)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        print(f"crisp reconstruct: {err}")
-        return 2
+    run(tyro.cli(ReconstructArgs, args=argv, prog="crisp reconstruct"))
     return 0

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what crisp-gym needs on a fresh Debian/Ubuntu machine: system libraries for
 # Open3D (libusb) and headless rendering (EGL/OSMesa), then the package itself (editable,
-# so the bundled assets and registry.yaml next to it are found) with its test extras.
+# so the bundled assets and registry.yaml next to it are found) with its test and video extras,
+# and MediaPipe for the video path in its private folder.
 # PyTorch is pinned first: an unpinned torch would pull several GB of CUDA wheels.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,4 +21,6 @@ PY="${PYTHON:-python3}"
 if ! "$PY" -c "import torch" >/dev/null 2>&1; then
   "$PY" -m pip install -q "torch==2.13.0"
 fi
-"$PY" -m pip install -q -e ".[test]"
+"$PY" -m pip install -q -e ".[test,video]"
+# MediaPipe for the plain-video path, into its own folder (it needs protobuf < 5; see reconstruct/person.py).
+"$PY" -m reconstruct.person --install

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
+from crisp_gym import cli
 from crisp_gym.clip import load_clip_dir
 from crisp_gym.metrics import support_tops
 from reconstruct import pipeline
@@ -126,8 +127,8 @@ def test_bad_names_and_outputs_fail_before_any_work(argv, message, tmp_path, mon
     monkeypatch.chdir(tmp_path)
     read = []
     monkeypatch.setattr(pipeline, "read_frames", lambda *a, **k: read.append(a))
-    assert pipeline.main([str(tmp_path / "missing.npz"), *argv]) == 2
-    assert message in capsys.readouterr().out and not read
+    assert cli.main(["reconstruct", str(tmp_path / "missing.npz"), *argv]) == 2
+    assert message in capsys.readouterr().err and not read
     assert not (tmp_path / "clips").exists() and not (tmp_path.parent / "escape").exists()
 
 

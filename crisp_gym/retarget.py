@@ -1,0 +1,95 @@
+"""From per-body world rotations to a humanoid motion a body can stand on.
+
+Every retargeter (BVH rotations in :mod:`crisp_gym.bvh`, video landmarks in
+:mod:`reconstruct.landmarks`) first finds each of the 24 bodies' world orientation and the
+pelvis position per frame; what follows is shared: local hinge angles, the noisy hands
+low-passed, planted feet laid flat (:func:`~crisp_gym.motion.level_feet`), hinges clipped into
+the humanoid's ranges, and the planted feet put on the floor frame by frame
+(:func:`~crisp_gym.motion.ground_stance`) or by one offset (:func:`~crisp_gym.motion.ground`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, joint_range_deg
+from crisp_gym.motion import (
+    Motion, StanceGrounding, ground, ground_stance, level_feet, low_pass_joints, rotations_to_hinge_angles,
+)
+
+log = logging.getLogger(__name__)
+
+FLICKERING_BODIES: tuple[str, ...] = ("L_Elbow", "R_Elbow", "L_Wrist", "R_Wrist", "L_Hand", "R_Hand")
+"""Bodies whose captured rotations are low-passed on import: hand markers are the noisiest."""
+
+
+@dataclass(frozen=True)
+class Retargeted:
+    """A retargeted motion and what was done to it.
+
+    Attributes:
+        motion: the humanoid motion, grounded.
+        clipped_fraction: share of hinge values moved into the humanoid's ranges.
+        max_clip_deg: the largest such move in degrees.
+        ground_offset: (T,) metres added to each frame's root height to put the feet on the floor.
+    """
+
+    motion: Motion
+    clipped_fraction: float
+    max_clip_deg: float
+    ground_offset: np.ndarray
+
+
+def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps: float, *,
+                          model: mujoco.MjModel | None = None,
+                          grounding: StanceGrounding | None = StanceGrounding(),
+                          clip_to_range: bool = True, low_pass_hz: float | None = 6.0,
+                          shift: bool = True) -> Retargeted:
+    """The motion whose bodies have world rotations ``body_rotations`` ((T, 24, 3, 3), in
+    :data:`~crisp_gym.humanoid.BODY_NAMES` order, identity = our T-pose) and pelvis at ``root_pos``.
+
+    ``low_pass_hz`` low-passes the hinge angles of :data:`FLICKERING_BODIES` (``None``: as given);
+    ``grounding`` lays planted feet flat and grounds them per frame (``None``: one offset for
+    the whole motion, feet as given); ``shift=False`` lays the feet flat but moves nothing up or
+    down (for a caller that has put the feet on the floor itself); ``model`` is the humanoid
+    grounded on (default: 1.70 m).
+    """
+    t = len(body_rotations)
+    ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]]))  # (23, 3, 2)
+    index = {body: i for i, body in enumerate(BODY_NAMES)}
+    local = np.empty_like(body_rotations)
+    for i, body in enumerate(BODY_NAMES):
+        parent = PARENTS[body]
+        glob = body_rotations[:, i]
+        local[:, i] = glob if parent is None else np.swapaxes(body_rotations[:, index[parent]], 1, 2) @ glob
+    motion = Motion(fps=fps, root_pos=root_pos,
+                    root_quat=Rotation.from_matrix(body_rotations[:, 0]).as_quat(scalar_first=True),
+                    dof_pos=rotations_to_hinge_angles(local[:, 1:], ranges if clip_to_range else None).reshape(t, -1))
+    if low_pass_hz is not None:
+        motion = low_pass_joints(motion, low_pass_hz, FLICKERING_BODIES)
+    model = model if model is not None else build_humanoid()
+    if grounding is not None:
+        motion = level_feet(motion, model, grounding)
+    clipped_fraction, max_clip = 0.0, 0.0
+    if clip_to_range:
+        flat = ranges.reshape(-1, 2)
+        clipped = np.clip(motion.dof_pos, flat[:, 0], flat[:, 1])
+        moved = np.abs(clipped - motion.dof_pos)
+        clipped_fraction = float(np.mean(moved > 1e-9))
+        max_clip = float(np.rad2deg(moved.max()))
+        motion = replace(motion, dof_pos=clipped)
+    if not shift:
+        grounded = motion
+    elif grounding is None:
+        grounded = ground(motion, model)
+    else:
+        grounded = ground_stance(motion, model, grounding)
+    if clipped_fraction > 0:
+        log.info("retarget clipped %.2f%% of hinge values into range (at most %.1f deg)",
+                 100 * clipped_fraction, max_clip)
+    return Retargeted(grounded, clipped_fraction, max_clip, grounded.root_pos[:, 2] - motion.root_pos[:, 2])

@@ -1,0 +1,201 @@
+"""The plain-video path: reading videos, scale and floor from known geometry, and the whole path
+on a few frames of the real phone video (when ``../shared/data`` and the video extra are present),
+with no network socket opened by it or its MediaPipe process."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+import crisp_gym  # noqa: F401 - registers CrispTrack-v0
+from reconstruct import person
+from reconstruct.io import is_plain_video, read_video
+from reconstruct.person import PersonTrack, landmark
+from reconstruct.pipeline import ReconstructArgs, run
+from reconstruct.sfm import CameraSolve
+from reconstruct.video import FEET, VideoConfig, floor_frame, metric_scale
+from tests.conftest import SHARED_DATA
+
+VIDEO = SHARED_DATA / "videomimic_sitting"
+
+
+def _frames(n: int = 6, h: int = 48, w: int = 64) -> np.ndarray:
+    y, x = np.mgrid[:h, :w]
+    return np.stack([np.dstack([(x * 4 + 9 * k) % 256, (y * 5) % 256, np.full((h, w), 40 * k % 256)])
+                     for k in range(n)]).astype(np.uint8)
+
+
+def test_video_file_and_image_folder_read_alike(tmp_path):
+    frames = _frames()
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, frame in enumerate(frames):  # numeric order, not text order: 10 after 9
+        iio.imwrite(folder / f"{k * 5}.png", frame)
+    iio.imwrite(tmp_path / "clip.mp4", frames, fps=12, codec="libx264", macro_block_size=1, quality=10)
+
+    from_folder, fps_folder = read_video(folder, fps=12, progress=False)
+    from_file, fps_file = read_video(tmp_path / "clip.mp4", progress=False)
+    np.testing.assert_array_equal(from_folder, frames)
+    assert fps_folder == fps_file == pytest.approx(12)
+    assert from_file.shape == frames.shape and np.abs(from_file.astype(int) - frames).mean() < 12
+    small, _ = read_video(folder, max_side=32, fps=12, progress=False)
+    assert small.shape[1:3] == (24, 32)
+    assert is_plain_video(folder) and is_plain_video(tmp_path / "clip.mp4")
+
+
+def test_bad_videos_are_named(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no images"):
+        read_video(tmp_path / "empty", progress=False)
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ValueError, match="not a video file"):
+        read_video(tmp_path / "notes.txt", progress=False)
+    (tmp_path / "broken.mp4").write_bytes(b"\x00" * 100)
+    with pytest.raises(ValueError, match="cannot read"):
+        read_video(tmp_path / "broken.mp4", progress=False)
+    with pytest.raises(FileNotFoundError):
+        read_video(tmp_path / "missing.mp4", progress=False)
+    one = tmp_path / "one"
+    one.mkdir()
+    iio.imwrite(one / "0.png", _frames(1)[0])
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        read_video(one, progress=False)
+    depth = tmp_path / "rgbd"
+    (depth / "depth").mkdir(parents=True)
+    iio.imwrite(depth / "0.png", _frames(1)[0])
+    assert not is_plain_video(depth)
+
+
+def test_missing_mediapipe_runtime_names_the_fix(tmp_path, monkeypatch):
+    monkeypatch.setattr(person.platformdirs, "user_data_dir", lambda name: str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="reconstruct.person --install"):
+        person.track_person(_frames(2))
+
+
+def _pinhole(f: float = 600.0, w: int = 640, h: int = 480) -> np.ndarray:
+    return np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+
+
+def _standing_person(frames: int, pelvis_xy: np.ndarray) -> np.ndarray:
+    """(T, 33, 3) landmarks of an upright person, world z up, feet at z = 0."""
+    points = np.zeros((frames, 33, 3))
+    points[:, :, 2] = 1.0  # everything at chest-ish height unless set below
+    for side, dy in (("left", 0.1), ("right", -0.1)):
+        for name, z in (("hip", 0.9), ("knee", 0.5), ("ankle", 0.08), ("heel", 0.0), ("foot_index", 0.0),
+                        ("shoulder", 1.4)):
+            points[:, landmark(f"{side}_{name}"), :2] = pelvis_xy + [0.0, dy]
+            points[:, landmark(f"{side}_{name}"), 2] = z
+        points[:, landmark(f"{side}_foot_index"), 0] += 0.15
+    return points
+
+
+def _camera(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """OpenCV camera-to-world looking from ``position`` at ``target`` (world z up)."""
+    forward = (target - position) / np.linalg.norm(target - position)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([right, down, forward], axis=1)
+    c2w[:3, 3] = position
+    return c2w
+
+
+def test_scale_and_floor_from_known_geometry():
+    """A floor grid seen by a moving camera, in SfM units 1/s of the metric ones, and a person
+    standing on it: the scale comes back as s, the floor as z = 0 with gravity up."""
+    rng = np.random.default_rng(0)
+    s_true, frames = 0.0123, 8
+    ground = np.c_[rng.uniform(-3, 3, (3000, 2)) + [3.0, 0.0], np.zeros(3000)]
+    person_xy = np.array([3.0, 0.0])
+    world = _standing_person(frames, person_xy)
+    c2w = np.stack([_camera(np.array([0.0, 0.1 * k, 1.5]), np.array([3.0, 0.0, 0.5])) for k in range(frames)])
+    intrinsic = _pinhole()
+    in_camera = np.einsum("tba,tjb->tja", c2w[:, :3, :3], world - c2w[:, None, :3, 3])
+    pixels = in_camera @ intrinsic.T
+    track = PersonTrack(image=pixels[..., :2] / pixels[..., 2:], world=world - world[:, :1], visibility=np.ones((frames, 33)),
+                        masks=np.zeros((frames, 480, 640), bool))
+    sfm_c2w = c2w.copy()
+    sfm_c2w[:, :3, 3] /= s_true
+    cameras = CameraSolve(intrinsic=intrinsic, cam_c2w=sfm_c2w, keyframes=np.arange(frames),
+                          registered=np.ones(frames, bool), points=ground / s_true,
+                          colors=np.zeros((3000, 3), np.uint8), visible=[np.arange(3000)] * frames,
+                          reprojection_error=0.3)
+    scale, ratios = metric_scale(track, in_camera, cameras, window_px=40)
+    assert scale == pytest.approx(s_true, rel=0.02) and len(ratios) == frames
+
+    # The same scene turned and shifted: the floor frame undoes it.
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    turn *= np.sign(np.linalg.det(turn))
+    moved = lambda p: p @ turn.T + [1.0, 2.0, 3.0]  # noqa: E731
+    transform, figures = floor_frame(moved(world), moved(ground), turn @ [1.0, 0, 0], VideoConfig(),
+                                     np.random.default_rng(0))
+    back = moved(ground) @ transform[:3, :3].T + transform[:3, 3]
+    assert np.abs(back[:, 2]).max() < 1e-6
+    feet = moved(world)[:, [landmark(n) for n in FEET]] @ transform[:3, :3].T + transform[:3, 3]
+    assert feet[..., 2].min() == pytest.approx(0.0, abs=1e-6)
+    assert figures["floor_source"] == "scene points" and figures["trunk_to_floor_deg"] < 1.0
+
+
+def _runtime_ready() -> bool:
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        return False
+    return person.runtime_installed()
+
+
+@pytest.mark.skipif(not VIDEO.is_dir() or not _runtime_ready(),
+                    reason="needs ../shared/data/videomimic_sitting, pycolmap and the MediaPipe runtime")
+def test_real_video_frames_become_a_clip_without_network(tmp_path, monkeypatch):
+    """Every 6th frame of the real phone video (the walk in, the sit, the stand up): a clip the
+    env loads, quality flags in meta.json, a comparison video; no socket is opened, here or in the
+    MediaPipe process (an audit hook in both refuses any)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, image in enumerate(sorted(VIDEO.glob("*.jpg"))[::6]):
+        (frames / f"{k:03d}.jpg").symlink_to(image)
+    guard = tmp_path / "guard"
+    guard.mkdir()
+    (guard / "sitecustomize.py").write_text(
+        "import sys\n"
+        "def _refuse(event, args):\n"
+        "    if event.startswith('socket.') and event not in ('socket.__new__',) or event == 'urllib.Request':\n"
+        "        raise RuntimeError('network use in the video path: ' + event)\n"
+        "sys.addaudithook(_refuse)\n")
+    monkeypatch.setenv("PYTHONPATH", str(guard))
+    probe = subprocess.run([sys.executable, "-c", "import socket; socket.create_connection(('127.0.0.1', 9), 1)"],
+                           capture_output=True, text=True)
+    assert "network use in the video path" in probe.stderr  # the guard is live in child processes
+    opened = []
+    refusing = [True]
+
+    def refuse(event, args):
+        if refusing[0] and (event in ("socket.connect", "socket.bind", "socket.getaddrinfo") or event == "urllib.Request"):
+            opened.append(event)
+            raise RuntimeError(f"network use in the video path: {event}")
+
+    sys.addaudithook(refuse)
+    try:
+        out = run(ReconstructArgs(input=frames, output=tmp_path / "clip", fps=2.5, max_side=480))
+    finally:
+        refusing[0] = False
+    assert not opened
+    meta = json.loads((out / "meta.json").read_text())
+    flags = meta["quality"]
+    assert flags["person_found"] > 0.9 and flags["frames"] == len(list(frames.iterdir()))
+    assert isinstance(flags["static_camera"], bool) and "warnings" in flags
+    if flags["static_camera"]:
+        assert flags["static_reason"]
+    assert (out / "comparison.mp4").stat().st_size > 0
+    env = gym.make("CrispTrack-v0", clip=str(out))
+    obs, _ = env.reset(seed=0)
+    assert np.all(np.isfinite(obs["proprio"]))
+    env.close()
