@@ -26,8 +26,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
-               PermissionError)
-"""Exceptions that report what the user asked for wrongly, not a fault of the program."""
+               PermissionError, ModuleNotFoundError)
+"""Exceptions that report what the user asked for wrongly (or an optional extra not installed),
+not a fault of the program."""
 
 
 def _usage() -> str:

@@ -12,6 +12,12 @@ turn from its parent (so an elbow or a knee bends about the axis across both of 
 except the thigh, whose twist follows the knee's bending plane when the knee is bent and the
 foot's heading when it is straight. The spine's three bodies share the turn from pelvis to chest,
 the neck half the turn from chest to head.
+
+Seated (hips flexed past 40-70°), two things change. The pelvis takes its heading from the
+thighs, not the hip line: the two hip landmarks then lie along the view and their depths are
+unsure. And the thighs only flex in the pelvis's sagittal plane: the humanoid's x-y-z hip hinges
+lock at 90° of flexion, and a thigh passing the horizontal with any splay or twist would swing its
+x and z hinges by up to 180° (or be clipped to their range, which bends it somewhere else).
 """
 
 from __future__ import annotations
@@ -88,8 +94,8 @@ def body_rotations(points: np.ndarray) -> np.ndarray:
     put = lambda body, rot: out.__setitem__((slice(None), BODY_NAMES.index(body)), rot)  # noqa: E731
     get = lambda body: out[:, BODY_NAMES.index(body)]  # noqa: E731
     y, z = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
-    # The hip line sets the pelvis's heading standing; seated, its two landmarks lie along the
-    # view and their depths are unsure (the bundled video: 15° off the thighs), and the thighs set it.
+    # The hip line sets the pelvis's heading standing, the thighs seated (on the bundled real
+    # video the seated hip line is 15° off the thighs).
     thighs = sum(points[:, landmark(f"{s}_knee")] - points[:, landmark(f"{s}_hip")] for s in ("left", "right"))
     by_hips = _frame(p["left_hip"] - p["right_hip"], trunk, y, trunk_rest)
     by_thighs = _frame(trunk, thighs, trunk_rest, [1.0, 0.0, 0.0])
@@ -124,9 +130,7 @@ def body_rotations(points: np.ndarray) -> np.ndarray:
         bend = np.rad2deg(np.arccos(np.clip(np.sum(_unit(thigh_dir) * _unit(shin_dir), axis=-1), -1, 1)))
         share = np.clip((bend - _STRAIGHT_KNEE_DEG[0]) / np.ptp(_STRAIGHT_KNEE_DEG), 0.0, 1.0)
         thigh = _between(by_foot, by_knee, share)
-        # Seated, the thigh only flexes in the pelvis's sagittal plane. The hip's x-y-z hinges lock
-        # at 90° of flexion: a thigh passing the horizontal with any splay or twist would need its
-        # x and z hinges swung by up to 180° (or clipped to their range, which bends it elsewhere).
+        # Seated, the thigh only flexes in the pelvis's sagittal plane (see the module docstring).
         in_pelvis = np.einsum("tji,tj->ti", get("Pelvis"), thigh_dir)
         flex = np.arctan2(-in_pelvis[:, 0], -in_pelvis[:, 2])
         sagittal = get("Pelvis") @ Rotation.from_rotvec(flex[:, None] * y).as_matrix()

@@ -199,6 +199,8 @@ class ReconstructArgs:
     """Plain videos: the frame rate of an image folder (a video file's own is read from it; default 30)."""
     max_side: int = 960
     """Plain videos: frames are downscaled so their long side is at most this many pixels."""
+    fixed_camera: bool = False
+    """Plain videos: the camera stood still (a tripod): no structure from motion, the scene from the person alone."""
     seed: int = 0
     """Plain videos: seed of the RANSAC fits and COLMAP (runs are reproducible)."""
     register: bool = False
@@ -260,13 +262,14 @@ def run(args: ReconstructArgs) -> Path:
 
 def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
     """The plain-video path (:mod:`reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``."""
-    from reconstruct.video import SfmConfig, VideoConfig, reconstruct_video  # noqa: PLC0415 - optional extra
+    from reconstruct.video import SfmConfig, VideoConfig, check_video_extras, reconstruct_video  # noqa: PLC0415
     from reconstruct.video_report import write_comparison  # noqa: PLC0415
 
+    check_video_extras(use_sfm=not args.fixed_camera)  # before reading minutes of video
     start = time.perf_counter()
     frames, fps = read_video(args.input, max_side=args.max_side, fps=args.fps)
     read_time = time.perf_counter() - start
-    config = VideoConfig(sfm=SfmConfig(seed=args.seed))
+    config = VideoConfig(sfm=SfmConfig(seed=args.seed), use_sfm=not args.fixed_camera)
     result = reconstruct_video(frames, fps, config, seed=args.seed)
     meta = {"name": name, "source": "reconstruct-video", "input": str(args.input.resolve()), "video_fps": fps,
             "image_size": [int(frames.shape[2]), int(frames.shape[1])], "quality": result.flags,

@@ -44,6 +44,8 @@ class SfmConfig:
         max_homography_inlier_ratio: pairs explained by a homography up to this share still count
             as general motion (COLMAP's 0.8 rejects a nearly rotating camera).
         min_registered_share: fewer registered frames than this share is a failure.
+        max_mapping_seconds: COLMAP's mapping stops after this long (a camera that barely moves
+            relative to its scene, e.g. a tripod's, keeps it trying new initial pairs for minutes).
         seed: COLMAP's random seed.
     """
 
@@ -57,6 +59,7 @@ class SfmConfig:
     ransac_max_error: float = 1.0
     max_homography_inlier_ratio: float = 0.95
     min_registered_share: float = 0.5
+    max_mapping_seconds: float = 150.0
     seed: int = 0
 
 
@@ -191,6 +194,8 @@ def solve_cameras(frames: np.ndarray, masks: np.ndarray, config: SfmConfig | Non
         start = time.perf_counter()
         options = pycolmap.IncrementalPipelineOptions()
         options.random_seed = cfg.seed
+        options.multiple_models = False  # one scene: frames that do not join the first model are not used
+        options.max_runtime_seconds = int(cfg.max_mapping_seconds)
         options.ba_refine_focal_length = cfg.refine_focal
         options.ba_refine_principal_point = False
         options.mapper.init_min_tri_angle = cfg.init_min_tri_angle

@@ -50,7 +50,7 @@ class SparsePlaneConfig:
     layer_thickness: float = 0.05
     min_points: int = 40
     seat_min_points: int = 10
-    seat_min_side: float = 0.5
+    seat_min_side: float = 0.6
     max_above_share: float = 0.2
     min_area: float = 0.1
     min_height: float = 0.08

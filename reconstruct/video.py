@@ -5,26 +5,30 @@ The fast path next to the high-fidelity one (MegaSAM depth + GVHMR motion throug
 
 1. **person** (:mod:`reconstruct.person`): MediaPipe Pose, 33 landmarks in pixels and in metres
    (centred between the hips) and a mask, per frame;
-2. **cameras** (:mod:`reconstruct.sfm`): COLMAP on the frames with the person masked out;
-   up to scale, or a fixed camera when too few frames register;
-3. **person in the camera**: the landmarks' metric 3D shape placed by PnP against their pixels;
-4. **scale**: the person's depth at the lowest foot against the SfM depth of the scene points
-   next to it (their median ratio over the frames: the person is metric, SfM is not);
-5. **floor and gravity**: the plane of scene points under the feet, its normal within
-   :attr:`VideoConfig.max_floor_tilt_deg` of the person's trunk; without scene points, the plane
-   through the feet's lowest landmarks;
-6. **scene** (:mod:`reconstruct.sparse_planes`): horizontal surfaces near the person's path;
-7. **motion** (:mod:`reconstruct.landmarks`): the landmarks retargeted onto the humanoid; where
-   the motion sits on a surface the scene saw, the hips are lowered onto it and the knees re-solved
-   with the feet kept where they stand (a monocular estimate of a seated person floats about
-   10 cm above the seat);
-8. **contact**: supports the contacts need and the scene lacks (:mod:`reconstruct.contact`).
+2. **cameras** (:mod:`reconstruct.sfm`): COLMAP on the frames with the person masked out, up to
+   scale; a fixed camera when too few frames register (or ``use_sfm=False``, a tripod);
+3. **person in the camera** (:func:`person_in_camera`): the landmarks' metric 3D shape placed by
+   PnP against their pixels;
+4. **scale** (:func:`metric_scale`): the person's depth at the lowest foot against the depth where
+   that foot's ray meets the plane of the scene points around it (median ratio over the frames:
+   the person is metric, SfM is not);
+5. **floor and gravity** (:func:`floor_frame`): the plane of scene points under the feet, its
+   normal within :attr:`VideoConfig.max_floor_tilt_deg` of the person's trunk; without scene points
+   (or when the feet do not stand on that plane), the plane through the feet's lowest landmarks;
+6. **motion** (:mod:`reconstruct.landmarks`, :func:`settle`): the landmarks, given our bone lengths,
+   retargeted onto the humanoid; under each seat contact the seat the scene points show is found
+   (:func:`find_seats`), and the hips are lowered onto it and each planted foot put on the floor, the
+   knees re-solved (a monocular estimate of a seated person floats about 20 cm above the seat, and
+   its planted feet hover by centimetres);
+7. **scene** (:mod:`reconstruct.sparse_planes`): the ground, level tops the points show plainly,
+   the seats; then the supports the contacts need and the scene lacks (:mod:`reconstruct.contact`).
 
 ``meta.json`` records quality flags (:func:`quality_flags`) and warns when they are poor.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -47,7 +51,7 @@ from reconstruct.contact import (
     kinematic_contacts,
 )
 from reconstruct.landmarks import fill_gaps, landmarks_to_motion, leg_lengths, with_leg_lengths
-from reconstruct.person import PersonTrack, landmark, track_person
+from reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
 from reconstruct.sfm import CameraSolve, SfmConfig, solve_cameras, static_camera, prior_intrinsic
 from reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 
@@ -62,11 +66,16 @@ class VideoConfig:
 
     Attributes:
         fps: output motion rate (the video's frames are resampled to it).
-        sfm: structure from motion; ``use_sfm=False`` skips it (a fixed camera).
+        sfm: structure-from-motion settings.
+        use_sfm: ``False`` skips structure from motion: a fixed camera (a tripod), the scene from
+            the person alone.
         scale_window_px: scene points within this many pixels of the lowest foot give its depth.
         min_visibility: landmarks below this visibility are left out of PnP.
         max_floor_tilt_deg: the floor's normal within this angle of the person's trunk.
         floor_threshold: m, inlier distance of the floor plane.
+        floor_feet_tolerance: m; the scene points' plane is the floor only if the feet's lowest
+            landmarks stand within this of it (else a kerb or a bank was found, and the feet's
+            own plane is the floor); the person's placement by PnP wanders by ±10 cm.
         planes: the horizontal surfaces.
         contact: contact detection and completion.
         seat_drop_max: m; a seat contact this far at most above a surface the scene saw is
@@ -81,6 +90,7 @@ class VideoConfig:
     min_visibility: float = 0.5
     max_floor_tilt_deg: float = 20.0
     floor_threshold: float = 0.03
+    floor_feet_tolerance: float = 0.12
     planes: SparsePlaneConfig = field(default_factory=SparsePlaneConfig)
     contact: ContactConfig = field(default_factory=ContactConfig)
     seat_drop_max: float = 0.35
@@ -224,7 +234,7 @@ def floor_frame(landmarks: np.ndarray, points: np.ndarray, view: np.ndarray, cfg
             normal, offset, inliers = _plane(near, cfg.floor_threshold, rng, up, cfg.max_floor_tilt_deg)
             # The floor is the level layer the feet stand on, not one above or below them (a kerb, a step).
             stand = np.percentile(lowest @ normal + offset, 10)
-            source = "scene points" if abs(stand) <= 2 * cfg.floor_threshold else "feet"
+            source = "scene points" if abs(stand) <= cfg.floor_feet_tolerance else "feet"
     if source == "feet":
         normal, offset, inliers = _plane(lowest, cfg.floor_threshold, rng, up, cfg.max_floor_tilt_deg)
     x = view - (view @ normal) * normal
@@ -339,6 +349,15 @@ def settle(landmarks: np.ndarray, first: Motion, seats: list[Seat], cfg: VideoCo
     return motion, seat_gaps(motion, seats) if seats else np.zeros(0)
 
 
+def _passed_through(box: Box, motion: Motion, body_pos: np.ndarray, model, margin: float = 0.02) -> bool:
+    """Whether the motion's joints or soles pass through ``box``: a level top the person walked
+    through is a slice of a slope or a bush, not a surface."""
+    soles = sole_points(model, motion.qpos())
+    points = np.concatenate([body_pos, soles], axis=1).reshape(-1, 3)
+    local = np.abs((points - box.center) @ box.rotation)
+    return bool(np.any(np.all(local <= box.half_size - margin, axis=1)))
+
+
 def _overlapping(contacts: list) -> list[list]:
     """Contacts grouped by overlapping frame windows (the pelvis and both thighs on one seat)."""
     groups: list[list] = []
@@ -374,9 +393,11 @@ def resample_landmarks(points: np.ndarray, fps_in: float, fps_out: float) -> np.
         len(t_out), *points.shape[1:])
 
 
-def quality_flags(track: PersonTrack, cameras: CameraSolve, scale_ratios: np.ndarray,
+def quality_flags(track: PersonTrack, cameras: CameraSolve, scale: float, scale_ratios: np.ndarray,
                   in_camera: np.ndarray) -> tuple[dict, list[str]]:
-    """The figures ``meta.json`` records about the input, and warnings where they are poor."""
+    """The figures ``meta.json`` records about the input, and warnings where they are poor.
+
+    ``parallax`` is the camera's largest displacement over the person's median distance from it."""
     depth = np.nanmedian(in_camera[..., 2]) if np.isfinite(in_camera).any() else float("nan")
     flags = {
         "frames": int(len(track.found)),
@@ -390,7 +411,7 @@ def quality_flags(track: PersonTrack, cameras: CameraSolve, scale_ratios: np.nda
         "reprojection_error_px": None if cameras.static else round(cameras.reprojection_error, 3),
         "scene_points": int(len(cameras.points)),
         "camera_rotation_deg": round(cameras.rotation_deg(), 2),
-        "parallax": None if cameras.static else round(cameras.baseline() / max(depth, 1e-6), 4),
+        "parallax": None if cameras.static else round(scale * cameras.baseline() / max(depth, 1e-6), 4),
         "scale_samples": int(len(scale_ratios)),
         "scale_spread": None if len(scale_ratios) < 3 else round(
             float(np.subtract(*np.percentile(scale_ratios, [75, 25])) / np.median(scale_ratios)), 4),
@@ -409,10 +430,22 @@ def quality_flags(track: PersonTrack, cameras: CameraSolve, scale_ratios: np.nda
     return flags, warn
 
 
+def check_video_extras(use_sfm: bool = True) -> None:
+    """ModuleNotFoundError naming the install step when the video path's optional parts are missing."""
+    missing = []
+    if use_sfm and importlib.util.find_spec("pycolmap") is None:
+        missing.append("pycolmap (pip install 'crisp-gym[video]')")
+    if not runtime_installed():
+        missing.append(f"MediaPipe {MEDIAPIPE_VERSION} in its own folder (python -m reconstruct.person --install)")
+    if missing:
+        raise ModuleNotFoundError("the video path needs " + " and ".join(missing) + "; scripts/install.sh does both")
+
+
 def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None = None, seed: int = 0,
                       progress: bool = True) -> VideoReconstruction:
     """Run the stages of the module docstring on ``frames`` ((T, H, W, 3) uint8 RGB at ``fps``)."""
     cfg = config or VideoConfig()
+    check_video_extras(cfg.use_sfm)
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
     start = time.perf_counter()
@@ -426,7 +459,8 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     if cfg.use_sfm:
         cameras = solve_cameras(frames, track.masks, cfg.sfm, progress=progress)
     else:
-        cameras = static_camera(len(frames), prior_intrinsic(height, width, cfg.sfm.focal_factor), "SfM not used")
+        cameras = static_camera(len(frames), prior_intrinsic(height, width, cfg.sfm.focal_factor),
+                                "a fixed camera was asked for (--fixed-camera)")
     timings["cameras"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -457,9 +491,9 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     motion, gaps = settle(resampled, first.motion, found, cfg, model)
     seat_records = [{"bodies": list(s.bodies), "frames": [s.start, s.stop], "seat_top": round(s.top, 3),
                      "underside_above_seat": round(float(g), 3)} for s, g in zip(found, gaps)]
-    pelvis_path = compute_kinematics(motion, model).body_pos[:, 0]
-    boxes = [ground_box(points, pelvis_path, cfg.planes), *level_tops(points, pelvis_path, cfg.planes),
-             *(s.box for s in found)]
+    body_pos = compute_kinematics(motion, model).body_pos
+    tops = [b for b in level_tops(points, body_pos[:, 0], cfg.planes) if not _passed_through(b, motion, body_pos, model)]
+    boxes = [ground_box(points, body_pos[:, 0], cfg.planes), *tops, *(s.box for s in found)]
     timings["motion_and_planes"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -469,7 +503,7 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     completion = complete_support(contacts, boxes, replace(cfg.contact.completion, floor_height=None))
     timings["contact"] = time.perf_counter() - start
 
-    flags, warn = quality_flags(track, cameras, ratios, in_camera)
+    flags, warn = quality_flags(track, cameras, scale, ratios, in_camera)
     flags |= floor | {"scale": round(scale, 6), "seats": seat_records}
     for message in warn:
         warnings.warn(message, stacklevel=2)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import gymnasium as gym
 import imageio.v3 as iio
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 
 import crisp_gym  # noqa: F401 - registers CrispTrack-v0
+from crisp_gym import cli
 from reconstruct import person
 from reconstruct.io import is_plain_video, read_video
 from reconstruct.person import PersonTrack, landmark
@@ -73,10 +73,16 @@ def test_bad_videos_are_named(tmp_path):
     assert not is_plain_video(depth)
 
 
-def test_missing_mediapipe_runtime_names_the_fix(tmp_path, monkeypatch):
+def test_missing_video_extras_name_the_fix(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(person.platformdirs, "user_data_dir", lambda name: str(tmp_path))
     with pytest.raises(FileNotFoundError, match="reconstruct.person --install"):
         person.track_person(_frames(2))
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, frame in enumerate(_frames(3)):
+        iio.imwrite(folder / f"{k}.png", frame)
+    assert cli.main(["reconstruct", str(folder), "-o", str(tmp_path / "clip")]) == 2
+    assert "reconstruct.person --install" in capsys.readouterr().err and not (tmp_path / "clip").exists()
 
 
 def _pinhole(f: float = 600.0, w: int = 640, h: int = 480) -> np.ndarray:
