@@ -548,7 +548,7 @@ def test_a_standing_reference_is_held_without_chatter(tmp_path, model):
         env.reset(seed=0, options={"start_frame": start})
         for _ in range(8):
             _, _, terminated, truncated, info = env.step(np.zeros(env.action_space.shape))
-            energy.append(info["reward_terms"]["energy"])
+            energy.append(info["reward_energy"])
             assert not terminated
     env.close()
     assert min(energy) > -0.5

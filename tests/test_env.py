@@ -1,12 +1,14 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 import crisp_gym  # noqa: F401
 from crisp_gym.envs.track import CrispTrackEnv
 from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+from crisp_gym.envs.tracking import REWARD_TERMS
 from crisp_gym.registry import BUNDLED_REGISTRY, _read
 
 
@@ -46,8 +48,9 @@ def test_reset_matches_reference_and_pd_tracking_runs_clean(sway_clip, clip):
         steps += 1
         assert np.isfinite(reward) and np.all(np.isfinite(env.data.qpos))
         assert not any(w.number for w in env.data.warning), "MuJoCo warned"
-        assert set(info["reward_terms"]) == {"pos", "rot", "vel", "ang_vel", "height", "energy"}
-        assert reward == pytest.approx(sum(info["reward_terms"].values()))
+        terms = {k: v for k, v in info.items() if k.startswith("reward_")}
+        assert set(terms) == {f"reward_{t}" for t in ("pos", "rot", "vel", "ang_vel", "height", "energy")}
+        assert reward == pytest.approx(sum(terms.values()))
         if terminated or truncated:
             break
     assert steps <= env.task.num_frames[0] - 1
@@ -69,8 +72,8 @@ def test_single_and_batched_envs_agree_step_by_step(sway_clip):
         results = [env.step(a) for env, a in zip(singles, actions)]
         sobs = [r[0] for r in results]
         np.testing.assert_allclose(vrew, [r[1] for r in results], rtol=1e-9, atol=1e-9)
-        for term in vinfo["reward_terms"]:
-            np.testing.assert_allclose(vinfo["reward_terms"][term], [r[4]["reward_terms"][term] for r in results],
+        for term in (k for k in vinfo if k.startswith("reward_")):
+            np.testing.assert_allclose(vinfo[term], [r[4][term] for r in results],
                                        rtol=1e-9, atol=1e-9)
         assert not vterm.any() and not vtrunc.any()
 
@@ -154,4 +157,25 @@ def test_torchrl_gym_env_entry_point(sway_clip):
 
     env = GymEnv("CrispTrack-v0", clip=str(sway_clip))
     check_env_specs(env)
+    env.close()
+
+
+def test_torchrl_wraps_the_batched_env(sway_clip):
+    """``GymWrapper(gym.make_vec(...))``: TorchRL reads the infos into fixed specs, so a reset's
+    info has a step's keys; its spec check passes and a rollout runs through episode ends."""
+    from torchrl.envs import GymWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    venv = gym.make_vec("CrispTrack-v0", num_envs=3, vectorization_mode="vector_entry_point", clip=str(sway_clip))
+    _, reset_info = venv.reset(seed=0)
+    _, _, _, _, step_info = venv.step(np.zeros(venv.action_space.shape))
+    assert {k for k in step_info if not k.startswith(("final", "_final"))} == set(reset_info)
+    env = GymWrapper(venv)
+    check_env_specs(env)
+    zero = lambda td: td.set("action", torch.zeros(env.action_spec.shape))  # noqa: E731 - the PD reference
+    rollout = env.rollout(70, zero, break_when_any_done=False)  # the 60-frame clip ends inside it
+    assert rollout.batch_size == (3, 70) and rollout["next", "done"].any()
+    going = ~rollout["next", "done"].squeeze(-1).numpy()  # an episode's end step reads the next one's reset
+    np.testing.assert_allclose(rollout["next", "reward"].squeeze(-1).numpy()[going],
+                               sum(rollout["next", f"reward_{t}"].numpy() for t in REWARD_TERMS)[going], rtol=1e-5, atol=1e-5)
     env.close()

@@ -34,6 +34,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+from crisp_gym.envs.tracking import terms_from_info
 
 STAT_KEYS = ("episode_return", "episode_length", "success")
 
@@ -60,7 +61,7 @@ class TrainingReward:
             raise ValueError(f"scale must be positive and energy_cap non-negative or None, got {self}")
 
     def __call__(self, reward: np.ndarray, terms: dict[str, np.ndarray]) -> np.ndarray:
-        """(N,) training rewards from the env's rewards and their ``reward_terms``."""
+        """(N,) training rewards from the env's rewards and their terms (:func:`~crisp_gym.envs.tracking.terms_from_info`)."""
         if self.energy_cap is not None:
             energy = terms["energy"]
             capped = reward - energy + np.maximum(energy, -self.energy_cap)
@@ -176,7 +177,7 @@ class CrispTrackTorchEnv(EnvBase):
             self._needs_reset |= done
         out = self._obs_td(next_obs, self._return, self._length, np.asarray(info["success"], dtype=bool))
         if not self.training_reward.is_identity:
-            reward = self.training_reward(reward, info["reward_terms"])
+            reward = self.training_reward(reward, terms_from_info(info))
         out["reward"] = torch.from_numpy(reward.astype(np.float32)).unsqueeze(-1)
         out["done"] = torch.from_numpy(done).unsqueeze(-1)
         out["terminated"] = torch.from_numpy(terminated.astype(bool)).unsqueeze(-1)

@@ -45,6 +45,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from crisp_gym.atomic import atomic_path, write_text
+from crisp_gym.envs.tracking import terms_from_info
 from train.models import ACTION_DIM
 
 SEGMENT_FRAMES = 100
@@ -383,7 +384,7 @@ def record_rollout(policy: Policy, clip: str | os.PathLike, start_frame: int = 0
             ref_pos.append(reference.body_pos[frame])
             errors.append(info["max_body_error"])
             rewards.append(reward)
-            terms.append(info["reward_terms"])
+            terms.append(terms_from_info(info))
             torques.append(env.data.actuator_force.copy())
             if terminated or truncated:
                 success = bool(info["success"])

@@ -12,6 +12,7 @@ import numpy as np
 
 from crisp_gym.envs.config import TrackConfig, default_config
 from crisp_gym.envs.library import ClipSource
+from crisp_gym.envs import tracking
 from crisp_gym.envs.task import TrackingTask
 
 _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
@@ -56,7 +57,8 @@ class CrispTrackEnv(gym.Env):
     | `points`   | (N, 3)     | scene surface points nearest the pelvis (only with `scene_aware=True`) |
 
     ## Reward
-    The paper's six terms, each in ``info["reward_terms"]``: position, rotation, linear
+    The paper's six terms, each in ``info`` as ``reward_pos``, ``reward_rot``, ``reward_vel``,
+    ``reward_ang_vel``, ``reward_height``, ``reward_energy``: position, rotation, linear
     and angular velocity, root height (``w·exp(-α·error)``) and an energy penalty
     ``-w_energy·Σ|τ·q̇|``.
 
@@ -69,7 +71,8 @@ class CrispTrackEnv(gym.Env):
 
     ## Info
     ``clip`` (index into ``env.task.clip_names``), ``frame``, ``start_frame``,
-    ``reward_terms``, ``max_body_error`` (m), ``success``.
+    the six ``reward_*`` terms, ``max_body_error`` (m), ``success``; the same keys after ``reset``
+    (terms 0, no success yet).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -134,7 +137,7 @@ class CrispTrackEnv(gym.Env):
         if terminated[0] or truncated[0]:
             self.start_sampler.record(self._clip, next_frame, terminated)
         info = {"clip": int(self._clip[0]), "frame": int(next_frame[0]), "start_frame": self._start_frame,
-                "reward_terms": {k: float(v[0]) for k, v in terms.items()},
+                **{k: float(v[0]) for k, v in tracking.reward_info(terms).items()},
                 "max_body_error": float(error[0]), "success": bool(truncated[0])}
         return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),
                 bool(truncated[0]), info)

@@ -25,6 +25,7 @@ from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs.task import TrackingTask
 from crisp_gym.envs.track import make_config
+from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force")
 
@@ -32,7 +33,7 @@ _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com",
 class CrispTrackVectorEnv(VectorEnv):
     """``num_envs`` copies of :class:`~crisp_gym.envs.track.CrispTrackEnv` in one batch.
 
-    Observations, rewards, ``info["reward_terms"]``, termination and success are those of
+    Observations, rewards, the ``info["reward_*"]`` terms, termination and success are those of
     the single env (the same functions over the same MuJoCo fields), batched on the first axis.
     With several clips (a motion library) all of them are composed into one model, so one
     ``mujoco.batch`` call still steps every simulation; ``info["clip"]`` says which clip each
@@ -106,8 +107,11 @@ class CrispTrackVectorEnv(VectorEnv):
         state = self._state()
         obs = self.task.observe(state, self._clip, self._frame)
         error = self.task.tracking_error(state, self._clip, self._frame)
+        # The same keys as a step's info (terms zero, no success yet): wrappers that read infos
+        # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
+        terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
         return obs, {"clip": self._clip.copy(), "frame": self._frame.copy(), "start_frame": self._start_frame.copy(),
-                     "max_body_error": error}
+                     **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
         next_frame = self._frame + 1
@@ -125,7 +129,7 @@ class CrispTrackVectorEnv(VectorEnv):
         truncated = truncated & ~failed
         obs = self.task.observe(state, self._clip, next_frame)
         info: dict[str, Any] = {"clip": self._clip.copy(), "frame": next_frame.copy(),
-                                "start_frame": self._start_frame.copy(), "reward_terms": terms,
+                                "start_frame": self._start_frame.copy(), **reward_info(terms),
                                 "max_body_error": error, "success": truncated.copy()}
         done = terminated | truncated
         if done.any():

@@ -46,6 +46,17 @@ TARGET_DIM = NUM_BODIES * (6 + 6 + 3 + 3)
 REWARD_TERMS = ("pos", "rot", "vel", "ang_vel", "height", "energy")
 
 
+def reward_info(terms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The reward terms as flat ``info`` entries, ``reward_pos`` ... ``reward_energy`` (as gymnasium's
+    MuJoCo envs report theirs; flat keys also read into TorchRL's fixed info specs)."""
+    return {f"reward_{name}": terms[name] for name in REWARD_TERMS}
+
+
+def terms_from_info(info: dict) -> dict[str, np.ndarray]:
+    """The reward terms back from an env's ``info`` (see :func:`reward_info`)."""
+    return {name: info[f"reward_{name}"] for name in REWARD_TERMS}
+
+
 def build_track_spec(boxes: list[Box], timestep: float,
                      scene_xmls: Sequence[tuple[Path, np.ndarray]] = ()) -> mujoco.MjSpec:
     """The humanoid composed with the scene's boxes, plus a camera that follows the pelvis.
