@@ -506,3 +506,18 @@ def test_export_replaces_a_folder_whole_or_not_at_all(sway_clip: Path, tmp_path:
     monkeypatch.undo()
     files = export(ExportConfig(source=str(sway_clip), format=("csv",), output=out, overwrite=True, quat_order="xyzw"))
     assert files == [out / "motion" / "motion.csv"] and not (out / "mesh").exists()
+
+
+def test_onnx_export_without_its_extra_names_it(tmp_path: Path, monkeypatch) -> None:
+    """Without onnxscript torch's exporter fails deep inside; the export says which extra to install
+    before writing anything."""
+    import importlib.util
+
+    from crisp_gym.export import policy as policy_export
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(policy_export.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "onnxscript" else real(name, *a))
+    with pytest.raises(ModuleNotFoundError, match=r"onnxscript: pip install 'crisp-gym\[export\]'"):
+        policy_export.export_policy(_tiny_actor("mlp", False), tmp_path / "out")
+    assert not (tmp_path / "out" / "policy.onnx").exists()

@@ -15,6 +15,7 @@ the observation normaliser folded in: it takes the raw observation tensors and r
 from __future__ import annotations
 
 import copy
+import importlib.util
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -159,6 +160,9 @@ def export_policy(actor: nn.Module, directory: str | Path, track: TrackConfig | 
     written = []
     with torch.no_grad():
         if "onnx" in formats:
+            missing = [m for m in ("onnx", "onnxscript") if importlib.util.find_spec(m) is None]
+            if missing:  # torch's exporter needs both and would fail deep inside with their names only
+                raise ModuleNotFoundError(f"ONNX export needs {' and '.join(missing)}: pip install 'crisp-gym[export]'")
             batch = torch.export.Dim("batch")
             shapes = {"proprio": {0: batch}, "targets": {0: batch}}
             if policy.scene_aware:
