@@ -52,7 +52,7 @@ from reconstruct.contact import (
 )
 from reconstruct.landmarks import fill_gaps, landmarks_to_motion, leg_lengths, with_leg_lengths
 from reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
-from reconstruct.sfm import CameraSolve, SfmConfig, solve_cameras, static_camera, prior_intrinsic
+from reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
 from reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 
 FEET = ("left_heel", "right_heel", "left_foot_index", "right_foot_index", "left_ankle", "right_ankle")
