@@ -172,11 +172,10 @@ def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bo
 
 @dataclass
 class ReconstructArgs:
-    """Reconstruct a simulation-ready clip from a depth video and the human's motion."""
+    """Reconstruct a simulation-ready clip from a depth video and the human's motion, or from a plain video."""
 
     input: tyro.conf.Positional[Path]
-    """MegaSAM-style npz (depths, intrinsic, cam_c2w[, images, masks]), an RGB-D folder (TUM / Redwood), or a
-    plain video: an mp4/mov file or a folder of images (the CPU video path, reconstruct.video)."""
+    """A MegaSAM-style npz, an RGB-D folder (TUM / Redwood), or a plain video (mp4/mov or an image folder)."""
     motion: Path | None = None
     """The human's motion: camera-frame SMPL parameters (GVHMR-style npz/.pt), a BVH or a motion.npz."""
     motion_frame: Literal["camera", "camera0"] = "camera"
