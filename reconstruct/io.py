@@ -470,11 +470,12 @@ def is_plain_video(path: str | Path) -> bool:
     return not (path / "depth").is_dir() and bool(_image_files(path))
 
 
-def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, max_frames: int = 3600,
+def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, max_frames: int = 1800,
                progress: bool = True) -> tuple[np.ndarray, float]:
     """(T, H, W, 3) uint8 RGB frames of a video file or an image folder, downscaled so the long
     side is at most ``max_side``, and the frame rate (a file's own; an image folder's is ``fps``,
-    else :data:`DEFAULT_FPS` with a warning). More than ``max_frames`` frames is an error."""
+    else :data:`DEFAULT_FPS` with a warning). More than ``max_frames`` frames is an error: the frames
+    are held in memory (1,800 at 960×540 take 2.8 GB)."""
     import cv2  # noqa: PLC0415 - only this reader needs it
 
     path = Path(path)
