@@ -179,3 +179,42 @@ def test_torchrl_wraps_the_batched_env(sway_clip):
     np.testing.assert_allclose(rollout["next", "reward"].squeeze(-1).numpy()[going],
                                sum(rollout["next", f"reward_{t}"].numpy() for t in REWARD_TERMS)[going], rtol=1e-5, atol=1e-5)
     env.close()
+
+
+def test_next_step_autoreset_for_gymnasium_wrappers(sway_clip):
+    """``autoreset_mode="next_step"``: an episode's last step keeps its observation, the next step
+    is the reset (reward 0, action ignored), and gymnasium's vector wrappers accept the env; the
+    steps between resets are those of the SAME_STEP env."""
+    from gymnasium.wrappers.vector import FlattenObservation, NormalizeObservation
+
+    kwargs = dict(num_envs=2, vectorization_mode="vector_entry_point", clip=str(sway_clip))
+    nxt = gym.make_vec("CrispTrack-v0", autoreset_mode="next_step", **kwargs)
+    same = gym.make_vec("CrispTrack-v0", **kwargs)
+    assert nxt.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP and same.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    start = {"start_frame": [50, 55]}
+    obs_n, _ = nxt.reset(seed=0, options=start)
+    obs_s, _ = same.reset(seed=0, options=start)
+    action = np.zeros(nxt.action_space.shape)
+    ended = None
+    for _ in range(12):
+        obs_n, rew_n, term_n, trunc_n, info_n = nxt.step(action)
+        if ended is not None:  # the step after an episode ended is its reset
+            assert rew_n[ended] == 0 and not term_n[ended] and not trunc_n[ended]
+            assert info_n["frame"][ended] == info_n["start_frame"][ended]
+            break
+        obs_s, rew_s, term_s, trunc_s, info_s = same.step(action)
+        np.testing.assert_allclose(rew_n, rew_s)
+        done = term_n | trunc_n
+        np.testing.assert_array_equal(done, term_s | trunc_s)
+        for k in obs_n:  # the finished env keeps its last observation, the SAME_STEP one reports it as final
+            want = np.stack([info_s["final_obs"][i][k] if done[i] else obs_s[k][i] for i in range(2)])
+            np.testing.assert_allclose(obs_n[k], want)
+        if done.any():
+            ended = int(np.flatnonzero(done)[0])
+    assert ended is not None
+    wrapped = NormalizeObservation(FlattenObservation(nxt))
+    flat, _ = wrapped.reset(seed=1)
+    assert flat.shape[0] == 2 and np.all(np.isfinite(flat))
+    wrapped.step(action)
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        gym.make_vec("CrispTrack-v0", autoreset_mode="sometimes", **kwargs)

@@ -5,9 +5,13 @@ returns it. Stepping releases the GIL inside MuJoCo's thread pool; a persistent 
 one MjData per simulation, and ``stage=mjSTAGE_VEL`` leaves the derived fields at the new
 state at no extra cost, which is what the observation reads.
 
-Autoreset is ``SAME_STEP``: a finished simulation is reset inside the same ``step``; the
-returned observation starts its next episode, and ``info["final_obs"]`` /
-``info["final_info"]`` (masked by ``info["_final_obs"]``) hold the last one.
+Autoreset (``autoreset_mode``) is ``SAME_STEP`` by default: a finished simulation is reset inside
+the same ``step``; the returned observation starts its next episode, and ``info["final_obs"]`` /
+``info["final_info"]`` (masked by ``info["_final_obs"]``) hold the last one. TorchRL needs this
+mode. ``"next_step"`` is gymnasium's own default, which its vector wrappers
+(``NormalizeObservation``, ``FlattenObservation``, ...) require: a finished simulation returns its
+last observation, and the next ``step`` resets it instead of stepping (its action is ignored;
+reward 0, neither terminated nor truncated).
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ class CrispTrackVectorEnv(VectorEnv):
         clip: clip name, registry tag or directory, or a list of them (see the single env).
         scene_aware: add the ``points`` observation.
         num_threads: MuJoCo threads stepping the batch (0: all CPUs).
+        autoreset_mode: ``"same_step"`` (default) or ``"next_step"`` (or the ``AutoresetMode``);
+            see the module docstring.
         config, **overrides: as for the single env.
 
     ``reset(options={"start_frame": frames, "clip": clips})`` fixes the start frames and/or
@@ -53,7 +59,8 @@ class CrispTrackVectorEnv(VectorEnv):
     metadata = {"render_modes": [], "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int = 1, clip: ClipSource | Sequence[ClipSource] = "flat_walk",
-                 scene_aware: bool = False, num_threads: int = 0, config: TrackConfig | None = None,
+                 scene_aware: bool = False, num_threads: int = 0,
+                 autoreset_mode: str | AutoresetMode = AutoresetMode.SAME_STEP, config: TrackConfig | None = None,
                  render_mode: str | None = None, **overrides: Any):
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -64,7 +71,13 @@ class CrispTrackVectorEnv(VectorEnv):
         self.start_sampler = self.task.start_sampler()
         self.model = self.task.model
         self.num_envs = num_envs
-        self.autoreset_mode = AutoresetMode.SAME_STEP
+        modes = {"same_step": AutoresetMode.SAME_STEP, "next_step": AutoresetMode.NEXT_STEP}
+        mode = autoreset_mode.name.lower() if isinstance(autoreset_mode, AutoresetMode) else str(autoreset_mode)
+        if mode not in modes:
+            raise ValueError(f"autoreset_mode must be one of {sorted(modes)}, got {autoreset_mode!r}")
+        self.autoreset_mode = modes[mode]
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
+        self._needs_reset = np.zeros(num_envs, dtype=bool)  # NEXT_STEP: finished on the previous step
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
         self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS}
         self.single_observation_space = self.task.observation_space()
@@ -104,6 +117,7 @@ class CrispTrackVectorEnv(VectorEnv):
             frames = np.broadcast_to(np.asarray(options["start_frame"], dtype=int), (self.num_envs,)).copy()
         self.task.check_starts(clips, frames)
         self._reset_sims(self._all, clips, frames)
+        self._needs_reset[:] = False
         state = self._state()
         obs = self.task.observe(state, self._clip, self._frame)
         error = self.task.tracking_error(state, self._clip, self._frame)
@@ -114,7 +128,8 @@ class CrispTrackVectorEnv(VectorEnv):
                      **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
-        next_frame = self._frame + 1
+        # NEXT_STEP: a simulation reset by this step does not advance past its clip's end.
+        next_frame = self._frame + ~self._needs_reset
         self._fields["ctrl"][:] = self.task.controls(np.asarray(actions).reshape(self.num_envs, -1), self._clip,
                                                      next_frame)
         try:
@@ -132,6 +147,8 @@ class CrispTrackVectorEnv(VectorEnv):
                                 "start_frame": self._start_frame.copy(), **reward_info(terms),
                                 "max_body_error": error, "success": truncated.copy()}
         done = terminated | truncated
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            return self._next_step_autoreset(obs, reward, terminated, truncated, info)
         if done.any():
             ids = np.flatnonzero(done)
             self.start_sampler.record(self._clip[ids], next_frame[ids], terminated[ids])
@@ -148,6 +165,31 @@ class CrispTrackVectorEnv(VectorEnv):
             fresh = self.task.observe(self._state(ids), self._clip[ids], self._frame[ids])
             for k in obs:
                 obs[k][ids] = fresh[k]
+        return obs, reward.astype(np.float64), terminated, truncated, info
+
+    def _next_step_autoreset(self, obs, reward, terminated, truncated, info):
+        """NEXT_STEP: the simulations that finished on the previous step start over now (their
+        physics step is discarded); those finishing now keep their last observation."""
+        starting = self._needs_reset
+        finished = (terminated | truncated) & ~starting
+        if finished.any():
+            ids = np.flatnonzero(finished)
+            self.start_sampler.record(self._clip[ids], self._frame[ids], terminated[ids])
+        if starting.any():
+            ids = np.flatnonzero(starting)
+            self._reset_sims(ids, *self.start_sampler.sample(self.np_random, len(ids)))
+            state = self._state(ids)
+            fresh = self.task.observe(state, self._clip[ids], self._frame[ids])
+            for k in obs:
+                obs[k][ids] = fresh[k]
+            reward[ids] = 0.0
+            terminated[ids] = truncated[ids] = info["success"][ids] = False
+            for name in REWARD_TERMS:
+                info[f"reward_{name}"][ids] = 0.0
+            info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]
+            info["start_frame"][ids] = self._start_frame[ids]
+            info["max_body_error"][ids] = self.task.tracking_error(state, self._clip[ids], self._frame[ids])
+        self._needs_reset = finished
         return obs, reward.astype(np.float64), terminated, truncated, info
 
     def close_extras(self, **kwargs: Any) -> None:
