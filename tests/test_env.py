@@ -218,3 +218,28 @@ def test_next_step_autoreset_for_gymnasium_wrappers(sway_clip):
     wrapped.step(action)
     with pytest.raises(ValueError, match="autoreset_mode"):
         gym.make_vec("CrispTrack-v0", autoreset_mode="sometimes", **kwargs)
+
+
+def test_blowing_up_ends_the_episode_with_a_bounded_reward(sway_clip):
+    """Random full-scale actions make the humanoid flail: every reward stays finite and above the
+    energy term's bound, and an episode whose hinges outrun ``max_joint_speed`` ends as unstable."""
+    venv = gym.make_vec("CrispTrack-v0", num_envs=8, vectorization_mode="vector_entry_point", clip=str(sway_clip))
+    config = venv.unwrapped.config
+    floor = -config.w_energy * config.max_power
+    venv.reset(seed=0)
+    venv.action_space.seed(0)
+    unstable_seen = 0
+    for _ in range(60):
+        _, reward, terminated, _, info = venv.step(venv.action_space.sample() * 4.0)
+        assert np.all(np.isfinite(reward)) and np.all(reward >= floor - 1e-9)
+        assert not np.any(info["unstable"] & ~terminated)
+        unstable_seen += int(info["unstable"].sum())
+    single = gym.make("CrispTrack-v0", clip=str(sway_clip))
+    _, info = single.reset(seed=0)
+    assert info["unstable"] is False and info["success"] is False and "reward_energy" in info
+    data = single.unwrapped.data
+    data.qvel[10] = 1e4  # a hinge spinning (as a blowing-up simulation does): the next step ends the episode
+    _, reward, terminated, _, info = single.step(np.zeros(single.action_space.shape))
+    assert terminated and info["unstable"] and np.isfinite(reward)
+    single.close()
+    venv.close()

@@ -30,6 +30,10 @@ class TrackConfig:
             error in m).
         termination_distance: early termination when any body is farther than this (m)
             from its reference.
+        max_joint_speed: rad/s; a hinge turning faster is a simulation blowing up (people's
+            fastest joints turn at about 30): the episode terminates, ``info["unstable"]``.
+        max_power: W; the energy term's penalty counts at most this much actuator power, so a
+            blowing-up step's reward stays bounded (people deliver a few kW at most).
         rsi_first_frame_prob: reference state init from frame 0 with this probability, else
             from a uniformly drawn frame.
         random_start: ``False`` always starts at frame 0 (evaluation).
@@ -67,6 +71,8 @@ class TrackConfig:
     a_ang_vel: float = 0.05
     a_height: float = 20.0
     termination_distance: float = 0.5
+    max_joint_speed: float = 50.0
+    max_power: float = 1.0e4
     rsi_first_frame_prob: float = 0.1
     random_start: bool = True
     start_sampling: str = "uniform"
@@ -88,8 +94,10 @@ class TrackConfig:
             raise ValueError("num_future_frames and num_points must be at least 1")
         if not 0.0 <= self.rsi_first_frame_prob <= 1.0:
             raise ValueError(f"rsi_first_frame_prob must be in [0, 1], got {self.rsi_first_frame_prob}")
-        if self.termination_distance <= 0 or self.action_scale <= 0 or self.point_spacing <= 0:
-            raise ValueError("termination_distance, action_scale and point_spacing must be positive")
+        if min(self.termination_distance, self.action_scale, self.point_spacing, self.max_joint_speed,
+               self.max_power) <= 0:
+            raise ValueError("termination_distance, action_scale, point_spacing, max_joint_speed and max_power "
+                             "must be positive")
 
         if self.start_sampling not in ("uniform", "adaptive"):
             raise ValueError(f"start_sampling must be 'uniform' or 'adaptive', got {self.start_sampling!r}")

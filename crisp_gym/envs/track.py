@@ -64,15 +64,17 @@ class CrispTrackEnv(gym.Env):
 
     ## Episode end
     ``terminated`` when any body is more than ``termination_distance`` (0.5 m) from its
-    reference (or the state stops being finite); ``truncated`` at the clip's last frame, where
+    reference, or when the simulation blows up (``info["unstable"]``: a state not finite, a hinge
+    faster than ``max_joint_speed``, or MuJoCo resetting it for bad accelerations; the energy
+    penalty counts at most ``max_power``, so rewards stay bounded); ``truncated`` at the clip's last frame, where
     ``info["success"]`` is ``True``. Starts use reference state init (10 % from frame 0);
     ``reset(options={"start_frame": k, "clip": c})`` picks the frame (and the clip, by index
     or name).
 
     ## Info
     ``clip`` (index into ``env.task.clip_names``), ``frame``, ``start_frame``,
-    the six ``reward_*`` terms, ``max_body_error`` (m), ``success``; the same keys after ``reset``
-    (terms 0, no success yet).
+    the six ``reward_*`` terms, ``max_body_error`` (m), ``success``, ``unstable`` (the simulation
+    blew up: see ``max_joint_speed``); the same keys after ``reset`` (terms 0, no success yet).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -121,26 +123,33 @@ class CrispTrackEnv(gym.Env):
         error = self.task.tracking_error(state, clips, frames)
         return ({k: v[0] for k, v in obs.items()},
                 {"clip": int(clips[0]), "frame": self._start_frame, "start_frame": self._start_frame,
-                 "max_body_error": float(error[0])})
+                 **{f"reward_{name}": 0.0 for name in tracking.REWARD_TERMS},
+                 "max_body_error": float(error[0]), "success": False, "unstable": False})
 
     def step(self, action):
         next_frame = self._frame + 1
         self.data.ctrl[:] = self.task.controls(np.asarray(action)[None], self._clip, next_frame)[0]
         # step2/step1 split: the derived fields end at the new state, as the batch's mjSTAGE_VEL.
+        # MuJoCo resets a simulation whose accelerations blow up (and counts it as a warning):
+        # that episode ends as unstable, as the batch's failed simulations do.
+        blowups = self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
         for _ in range(self.config.substeps):
             mujoco.mj_step2(self.model, self.data)
             mujoco.mj_step1(self.model, self.data)
+        failed = self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > blowups
         self._frame = next_frame
         state = self._state()
-        reward, terms, terminated, truncated, error = self.task.evaluate(state, self._clip, next_frame)
+        reward, terms, terminated, truncated, error, unstable = self.task.evaluate(state, self._clip, next_frame)
+        unstable, terminated, truncated = unstable | failed, terminated | failed, truncated & ~failed
         obs = self.task.observe(state, self._clip, next_frame)
         if terminated[0] or truncated[0]:
             self.start_sampler.record(self._clip, next_frame, terminated)
         info = {"clip": int(self._clip[0]), "frame": int(next_frame[0]), "start_frame": self._start_frame,
                 **{k: float(v[0]) for k, v in tracking.reward_info(terms).items()},
-                "max_body_error": float(error[0]), "success": bool(truncated[0])}
+                "max_body_error": float(error[0]), "success": bool(truncated[0]), "unstable": bool(unstable[0])}
         return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),
                 bool(truncated[0]), info)
+
     def render(self):
         if self.render_mode != "rgb_array":
             return None

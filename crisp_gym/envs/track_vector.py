@@ -125,7 +125,8 @@ class CrispTrackVectorEnv(VectorEnv):
         # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
         terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
         return obs, {"clip": self._clip.copy(), "frame": self._frame.copy(), "start_frame": self._start_frame.copy(),
-                     **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool)}
+                     **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool),
+                     "unstable": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
         # NEXT_STEP: a simulation reset by this step does not advance past its clip's end.
@@ -139,13 +140,14 @@ class CrispTrackVectorEnv(VectorEnv):
             failed = np.isin(self._all, err.ids)
         self._frame = next_frame
         state = self._state()
-        reward, terms, terminated, truncated, error = self.task.evaluate(state, self._clip, next_frame)
+        reward, terms, terminated, truncated, error, unstable = self.task.evaluate(state, self._clip, next_frame)
+        unstable = unstable | failed
         terminated = terminated | failed
         truncated = truncated & ~failed
         obs = self.task.observe(state, self._clip, next_frame)
         info: dict[str, Any] = {"clip": self._clip.copy(), "frame": next_frame.copy(),
                                 "start_frame": self._start_frame.copy(), **reward_info(terms),
-                                "max_body_error": error, "success": truncated.copy()}
+                                "max_body_error": error, "success": truncated.copy(), "unstable": unstable}
         done = terminated | truncated
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
             return self._next_step_autoreset(obs, reward, terminated, truncated, info)
@@ -158,7 +160,8 @@ class CrispTrackVectorEnv(VectorEnv):
                 info["final_obs"][i] = {k: v[i].copy() for k, v in obs.items()}
                 info["final_info"][i] = {"clip": int(self._clip[i]), "frame": int(next_frame[i]),
                                          "start_frame": int(self._start_frame[i]),
-                                         "max_body_error": float(error[i]), "success": bool(truncated[i])}
+                                         "max_body_error": float(error[i]), "success": bool(truncated[i]),
+                                         "unstable": bool(unstable[i])}
             info["_final_obs"] = done.copy()
             info["_final_info"] = done.copy()
             self._reset_sims(ids, *self.start_sampler.sample(self.np_random, len(ids)))
@@ -183,7 +186,7 @@ class CrispTrackVectorEnv(VectorEnv):
             for k in obs:
                 obs[k][ids] = fresh[k]
             reward[ids] = 0.0
-            terminated[ids] = truncated[ids] = info["success"][ids] = False
+            terminated[ids] = truncated[ids] = info["success"][ids] = info["unstable"][ids] = False
             for name in REWARD_TERMS:
                 info[f"reward_{name}"][ids] = 0.0
             info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]

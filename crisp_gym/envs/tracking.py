@@ -255,7 +255,7 @@ def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackC
     err *= [[-cfg.a_pos], [-cfg.a_vel], [-cfg.a_ang_vel], [-cfg.a_rot], [-cfg.a_height]]
     terms = np.exp(err, out=err)
     terms *= [[cfg.w_pos], [cfg.w_vel], [cfg.w_ang_vel], [cfg.w_rot], [cfg.w_height]]
-    power = np.abs(state.actuator_force * state.qvel[:, 6:]).sum(-1)
+    power = np.minimum(np.abs(state.actuator_force * state.qvel[:, 6:]).sum(-1), cfg.max_power)
     return {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
             "energy": -cfg.w_energy * power}
 
