@@ -205,3 +205,20 @@ def test_real_video_frames_become_a_clip_without_network(tmp_path, monkeypatch):
     obs, _ = env.reset(seed=0)
     assert np.all(np.isfinite(obs["proprio"]))
     env.close()
+
+
+def test_upright_makes_the_standing_trunk_vertical():
+    """A person whose every frame leans 8° (a monocular pose's bias) is turned upright about the
+    hips; the angle is reported and a crouched frame keeps its lean relative to the standing ones."""
+    from scipy.spatial.transform import Rotation
+
+    from reconstruct.video import upright
+
+    points = _standing_person(10, np.array([1.0, 2.0]))
+    points[7:, :, 2] *= 0.6  # crouched: hips lower than 0.85 of the highest
+    hips = 0.5 * (points[:, landmark("left_hip")] + points[:, landmark("right_hip")])
+    tilt = Rotation.from_rotvec([np.deg2rad(8.0), 0.0, 0.0]).as_matrix()
+    leaning = (points - hips[:, None]) @ tilt.T + hips[:, None]
+    fixed, angle = upright(leaning, hip_share=0.85)
+    assert angle == pytest.approx(8.0, abs=1e-6)
+    np.testing.assert_allclose(fixed, points, atol=1e-9)
