@@ -21,7 +21,7 @@ import numpy as np
 
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.import_motion import MOTION_SUFFIXES, read_motion
-from crisp_gym.metrics import foot_skating, sole_points
+from crisp_gym.metrics import foot_heights, foot_skating, sole_points
 from crisp_gym.motion import Motion, planted_feet
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "asap_video_smpl"
@@ -33,7 +33,7 @@ def planted_foot_heights(motion: Motion, model) -> tuple[np.ndarray, float]:
     lower), and the mean horizontal speed (m/s) of the planted feet's soles."""
     planted = planted_feet(motion, model)  # (T, 2): left, right
     soles = sole_points(model, motion.qpos())  # (T, 4, 3): L ankle, L toe, R ankle, R toe
-    height = np.where(planted, np.minimum(soles[:, 0::2, 2], soles[:, 1::2, 2]), np.inf).min(axis=1)
+    height = np.where(planted, foot_heights(soles), np.inf).min(axis=1)
     skating = foot_skating(soles, np.repeat(planted, 2, axis=1), motion.fps)
     return height[np.isfinite(height)], skating.mean_speed
 

@@ -35,9 +35,9 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import sole_points, support_tops
 from crisp_gym.motion import compute_kinematics, planted_feet
-from reconstruct.contact import PARTS, body_geometry
 from reconstruct.io import read_video
 from reconstruct.pipeline import ReconstructArgs, run
+from reconstruct.video import seated_underside
 
 VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "videomimic_sitting"
 FPS = 15.0
@@ -102,14 +102,13 @@ def fidelity(clip_dir: Path) -> dict:
     pelvis = kin.body_pos[:, BODY_NAMES.index("Pelvis")]
     seated = pelvis[:, 2] < np.percentile(pelvis[:, 2], 20)
     seat_top = float(np.median(highest_top(pelvis[seated, :2], clip.boxes)))
-    geometry = body_geometry(motion)
-    seat_parts = np.concatenate([geometry.patches[BODY_NAMES.index(b)][..., 2] for b in PARTS["seat"]], axis=1)
-    underside = np.quantile(seat_parts, 0.1, axis=1)[seated]
+    underside = seated_underside(motion)[seated]
     env = gym.make("CrispTrack-v0", clip=str(clip_dir))
     env.reset(seed=0)
     env.close()
     meta = json.loads((clip_dir / "meta.json").read_text())
-    return {"planted_gap_median_cm": 100 * float(np.median(gaps)), "planted_gap_p90_cm": 100 * float(np.percentile(gaps, 90)),
+    return {"planted_gap_median_cm": 100 * float(np.median(gaps)),
+            "planted_gap_p90_cm": 100 * float(np.percentile(gaps, 90)),
             "seat_top_m": seat_top, "seated_pelvis_above_seat_m": float(np.median(pelvis[seated, 2]) - seat_top),
             "seated_underside_above_seat_m": float(np.median(underside) - seat_top), "loads": True,
             "static_camera": meta["quality"]["static_camera"], "registered": meta["quality"]["registered"],

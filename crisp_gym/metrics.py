@@ -188,6 +188,12 @@ def sole_points(model: mujoco.MjModel, qpos: np.ndarray, bodies: tuple[str, ...]
     return out
 
 
+def foot_heights(soles: np.ndarray) -> np.ndarray:
+    """(T, 2) height of each foot (left, right): the lower of its ankle's and toe's sole points,
+    from :func:`sole_points` with the default :data:`~crisp_gym.humanoid.FEET`."""
+    return np.minimum(soles[:, 0::2, 2], soles[:, 1::2, 2])
+
+
 @dataclass(frozen=True)
 class Plausibility:
     """Summary of :func:`motion_plausibility`.

@@ -339,7 +339,7 @@ def _floor_axes(normal: np.ndarray) -> np.ndarray:
     return np.stack([first, np.cross(normal, first)])
 
 
-def _fit_plane(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
+def fit_plane(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares plane (unit normal along ``up``, offset) through ``points``."""
     centre = points.mean(axis=0)
     normal = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
@@ -347,16 +347,17 @@ def _fit_plane(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(-normal @ centre)
 
 
-def _ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, cfg: AlignConfig,
-                  rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """The plane with the most inliers among hypotheses whose normal is within the tolerance of
-    ``up``, refined by least squares; ``None`` when no hypothesis qualifies.
+def ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, threshold: float, iterations: int,
+                 rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """The plane (unit normal along ``up``, offset, inlier mask within ``threshold``) with the most
+    inliers among ``iterations`` hypotheses whose normal has at least ``min_cos`` with ``up``,
+    refined by least squares; ``None`` when no hypothesis qualifies.
 
     Written out rather than Open3D's ``segment_plane`` because that one draws from a global seed.
     """
     if len(points) < 3:
         return None
-    sample = points[rng.integers(len(points), size=(cfg.ransac_iterations, 3))]
+    sample = points[rng.integers(len(points), size=(iterations, 3))]
     normals = np.cross(sample[:, 1] - sample[:, 0], sample[:, 2] - sample[:, 0])
     norms = np.linalg.norm(normals, axis=1)
     ok = norms > 1e-9
@@ -366,15 +367,15 @@ def _ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, cfg: Align
     if not ok.any():
         return None
     normals, offsets = normals[ok], -np.einsum("ij,ij->i", normals[ok], sample[ok, 0])
-    counts = (np.abs(points @ normals.T + offsets) < cfg.plane_threshold).sum(axis=0)
+    counts = (np.abs(points @ normals.T + offsets) < threshold).sum(axis=0)
     best = int(np.argmax(counts))
     normal, offset = normals[best], offsets[best]
     for _ in range(2):  # refit on the inliers, then take the inliers of the refit
-        inliers = np.abs(points @ normal + offset) < cfg.plane_threshold
+        inliers = np.abs(points @ normal + offset) < threshold
         if inliers.sum() < 3:
             return None
-        normal, offset = _fit_plane(points[inliers], up)
-    return normal, offset, np.abs(points @ normal + offset) < cfg.plane_threshold
+        normal, offset = fit_plane(points[inliers], up)
+    return normal, offset, np.abs(points @ normal + offset) < threshold
 
 
 def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: float, up: np.ndarray,
@@ -389,12 +390,12 @@ def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: f
         near = pts[np.abs(pts @ normal + offset) < cfg.floor_band]
         if len(near) < cfg.min_frame_floor_points:
             continue
-        n_t, d_t = _fit_plane(near, up)
+        n_t, d_t = fit_plane(near, up)
         for _ in range(2):  # the frame's own plane, without the band's other surfaces
             inliers = near[np.abs(near @ n_t + d_t) < cfg.plane_threshold]
             if len(inliers) < cfg.min_frame_floor_points:
                 break
-            n_t, d_t = _fit_plane(inliers, up)
+            n_t, d_t = fit_plane(inliers, up)
         else:
             normals.append(n_t)
             weights.append(len(inliers))
@@ -420,7 +421,7 @@ def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchor
     remaining = points[np.abs(normals @ up_prior) >= min_cos]
     planes = []
     for _ in range(cfg.max_planes):
-        found = _ransac_plane(remaining, up_prior, min_cos, cfg, rng)
+        found = ransac_plane(remaining, up_prior, min_cos, cfg.plane_threshold, cfg.ransac_iterations, rng)
         if found is None or found[2].sum() < cfg.min_floor_points:
             break
         normal, offset, inliers = found

@@ -76,13 +76,18 @@ def _between(a: np.ndarray, b: np.ndarray, share: float | np.ndarray) -> np.ndar
     return a @ Rotation.from_rotvec(np.reshape(share, (-1, 1)) * rel).as_matrix()
 
 
+def hips_and_trunk(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) midpoint of the hips and (T, 3) trunk vector from it to the shoulders' midpoint."""
+    mid_hip = 0.5 * (points[:, landmark("left_hip")] + points[:, landmark("right_hip")])
+    mid_shoulder = 0.5 * (points[:, landmark("left_shoulder")] + points[:, landmark("right_shoulder")])
+    return mid_hip, mid_shoulder - mid_hip
+
+
 def body_rotations(points: np.ndarray) -> np.ndarray:
     """(T, 24, 3, 3) world orientations of the humanoid's bodies from (T, 33, 3) landmarks (z up)."""
     p = {name: points[:, landmark(name)] for name in ("left_hip", "right_hip", "left_shoulder", "right_shoulder",
                                                       "left_ear", "right_ear", "nose")}
-    mid_hip = 0.5 * (p["left_hip"] + p["right_hip"])
-    mid_shoulder = 0.5 * (p["left_shoulder"] + p["right_shoulder"])
-    trunk = mid_shoulder - mid_hip
+    _, trunk = hips_and_trunk(points)
     rest = default_rest_joints(1.0)
     at_rest = lambda *bodies: np.mean([rest[BODY_NAMES.index(b)] for b in bodies], axis=0)  # noqa: E731
     trunk_rest = at_rest("L_Shoulder", "R_Shoulder") - at_rest("L_Hip", "R_Hip")  # leans back 2° at rest
@@ -189,7 +194,6 @@ def landmarks_to_motion(points: np.ndarray, fps: float, *, model: mujoco.MjModel
     model = model if model is not None else build_humanoid()
     hips = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name) for name in ("L_Hip", "R_Hip")]
     pelvis_above_hips = -model.body_pos[hips].mean(axis=0)  # the hips' offsets in the pelvis frame
-    mid_hip = 0.5 * (points[:, landmark("left_hip")] + points[:, landmark("right_hip")])
-    root = mid_hip + rotations[:, 0] @ pelvis_above_hips
+    root = hips_and_trunk(points)[0] + rotations[:, 0] @ pelvis_above_hips
     return motion_from_rotations(rotations, root, fps, model=model, grounding=grounding, low_pass_hz=None,
                                  shift=shift)

@@ -108,12 +108,14 @@ def prior_intrinsic(height: int, width: int, focal_factor: float) -> np.ndarray:
     return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
 
 
-def static_camera(num_frames: int, intrinsic: np.ndarray, reason: str) -> CameraSolve:
-    """A camera that never moves, with no scene points (the scene comes from the person)."""
+def static_camera(num_frames: int, intrinsic: np.ndarray, reason: str,
+                  seconds: dict[str, float] | None = None) -> CameraSolve:
+    """A camera that never moves, with no scene points (the scene comes from the person);
+    ``seconds``: the time spent finding that out."""
     return CameraSolve(intrinsic=intrinsic, cam_c2w=np.tile(np.eye(4), (num_frames, 1, 1)),
                        keyframes=np.zeros(0, int), registered=np.zeros(0, bool), points=np.zeros((0, 3)),
                        colors=np.zeros((0, 3), np.uint8), visible=[], reprojection_error=float("nan"),
-                       static=True, reason=reason)
+                       static=True, reason=reason, seconds=dict(seconds or {}))
 
 
 def _interpolate(num_frames: int, frames: np.ndarray, c2w: np.ndarray) -> np.ndarray:
@@ -208,7 +210,7 @@ def solve_cameras(frames: np.ndarray, masks: np.ndarray, config: SfmConfig | Non
         seconds["mapping"] = time.perf_counter() - start
 
     if not models:
-        return _static(num, intrinsic, "COLMAP built no model: too little parallax or texture", seconds)
+        return static_camera(num, intrinsic, "COLMAP built no model: too little parallax or texture", seconds)
     model = max(models.values(), key=lambda m: m.num_reg_images())
     index = {name: i for i, name in enumerate(names)}
     registered = np.zeros(len(keyframes), bool)
@@ -224,7 +226,8 @@ def solve_cameras(frames: np.ndarray, masks: np.ndarray, config: SfmConfig | Non
             visible[i] = np.array([row[p.point3D_id] for p in image.points2D if p.has_point3D()], dtype=int)
     share = registered.mean()
     if share < cfg.min_registered_share:
-        return _static(num, intrinsic, f"COLMAP registered {registered.sum()} of {len(keyframes)} frames", seconds)
+        return static_camera(num, intrinsic, f"COLMAP registered {registered.sum()} of {len(keyframes)} frames",
+                             seconds)
     camera = next(iter(model.cameras.values()))
     f = float(camera.params[0])
     intrinsic = np.array([[f, 0.0, camera.params[1]], [0.0, f, camera.params[2]], [0.0, 0.0, 1.0]])
@@ -233,8 +236,3 @@ def solve_cameras(frames: np.ndarray, masks: np.ndarray, config: SfmConfig | Non
     return CameraSolve(intrinsic=intrinsic, cam_c2w=_interpolate(num, keyframes[registered], c2w[registered]),
                        keyframes=keyframes, registered=registered, points=points, colors=colors, visible=visible,
                        reprojection_error=float(model.compute_mean_reprojection_error()), seconds=seconds)
-
-
-def _static(num: int, intrinsic: np.ndarray, reason: str, seconds: dict[str, float]) -> CameraSolve:
-    solve = static_camera(num, intrinsic, reason)
-    return CameraSolve(**{**solve.__dict__, "seconds": seconds})

@@ -142,7 +142,8 @@ def level_tops(points: np.ndarray, pelvis_path: np.ndarray, config: SparsePlaneC
             if 4 * box.half_size[0] * box.half_size[1] < cfg.min_area:
                 continue
             local = (points - box.center) @ box.rotation
-            over = np.all(np.abs(local[:, :2]) <= box.half_size[:2], axis=1) & (points[:, 2] > height + cfg.layer_thickness / 2)
+            above = points[:, 2] > height + cfg.layer_thickness / 2
+            over = np.all(np.abs(local[:, :2]) <= box.half_size[:2], axis=1) & above
             if over.sum() <= cfg.max_above_share * len(patch):
                 boxes.append(box)
     return boxes

@@ -39,25 +39,27 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
-from crisp_gym.metrics import sole_points
+from crisp_gym.metrics import foot_heights, sole_points
 from crisp_gym.motion import Motion, compute_kinematics, planted_feet
 from crisp_gym.scene import Box
+from reconstruct.align import fit_plane, ransac_plane
 from reconstruct.contact import (
     PARTS,
     CompletionResult,
     ContactConfig,
     body_geometry,
-    complete_support,
     filter_contacts,
     kinematic_contacts,
 )
-from reconstruct.landmarks import fill_gaps, landmarks_to_motion, leg_lengths, with_leg_lengths
+from reconstruct.landmarks import fill_gaps, hips_and_trunk, landmarks_to_motion, leg_lengths, with_leg_lengths
 from reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
+from reconstruct.pipeline import contact_completion
 from reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
 from reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 
 FEET = ("left_heel", "right_heel", "left_foot_index", "right_foot_index", "left_ankle", "right_ankle")
 """Landmarks the lowest point of a foot is taken from."""
+_FEET_INDEX = [landmark(n) for n in FEET]
 _LOWERED_KEEP = FEET + ("left_knee", "right_knee")  # landmarks not moved when the hips are lowered
 
 
@@ -74,6 +76,7 @@ class VideoConfig:
         min_visibility: landmarks below this visibility are left out of PnP.
         max_floor_tilt_deg: the floor's normal within this angle of the person's trunk.
         floor_threshold: m, inlier distance of the floor plane.
+        ransac_iterations: plane hypotheses the floor's RANSAC draws.
         floor_feet_tolerance: m; the scene points' plane is the floor only if the feet's lowest
             landmarks stand within this of it (else a kerb or a bank was found, and the feet's
             own plane is the floor); the person's placement by PnP wanders by ±10 cm.
@@ -93,6 +96,7 @@ class VideoConfig:
     min_visibility: float = 0.5
     max_floor_tilt_deg: float = 20.0
     floor_threshold: float = 0.03
+    ransac_iterations: int = 500
     floor_feet_tolerance: float = 0.12
     planes: SparsePlaneConfig = field(default_factory=SparsePlaneConfig)
     contact: ContactConfig = field(default_factory=ContactConfig)
@@ -155,8 +159,7 @@ def person_in_camera(track: PersonTrack, intrinsic: np.ndarray, min_visibility: 
 
 
 def _lowest_foot(track: PersonTrack, k: int) -> int:
-    feet = [landmark(n) for n in FEET]
-    return feet[int(np.argmax(track.image[k, feet, 1]))]
+    return _FEET_INDEX[int(np.argmax(track.image[k, _FEET_INDEX, 1]))]
 
 
 def metric_scale(track: PersonTrack, in_camera: np.ndarray, cameras: CameraSolve,
@@ -176,42 +179,16 @@ def metric_scale(track: PersonTrack, in_camera: np.ndarray, cameras: CameraSolve
             continue
         # The foot's ray met with the plane of the points around it: their median depth would be
         # biased far, as a slanted floor's image rows crowd together with distance.
-        centre = points[near].mean(axis=0)
-        normal = np.linalg.svd(points[near] - centre)[2][2]
         ray = np.linalg.solve(cameras.intrinsic, [*track.image[k, foot], 1.0])
+        normal, offset = fit_plane(points[near], -ray)
         if abs(normal @ ray) > 1e-3 * np.linalg.norm(ray):
-            depth = (normal @ centre) / (normal @ ray)  # z of the ray's point (ray has z = 1)
+            depth = -offset / (normal @ ray)  # z of the ray's point (ray has z = 1)
             if depth > 0:
                 ratios.append(in_camera[k, foot, 2] / depth)
     ratios = np.asarray(ratios)
     if len(ratios) < 3:
         raise ValueError("too few frames show scene points next to the person's feet to measure the scale")
     return float(np.median(ratios)), ratios
-
-
-def _plane(points: np.ndarray, threshold: float, rng: np.random.Generator, up: np.ndarray,
-           max_tilt_deg: float, iterations: int = 500) -> tuple[np.ndarray, float, np.ndarray]:
-    """RANSAC plane with its normal within ``max_tilt_deg`` of ``up``: (normal, offset, inliers)."""
-    best = (up, -float(np.median(points @ up)), np.zeros(len(points), bool))
-    cos_max = np.cos(np.deg2rad(max_tilt_deg))
-    for _ in range(iterations):
-        a, b, c = points[rng.choice(len(points), 3, replace=False)]
-        normal = np.cross(b - a, c - a)
-        if np.linalg.norm(normal) < 1e-9:
-            continue
-        normal = normal / np.linalg.norm(normal) * np.sign(normal @ up)
-        if normal @ up < cos_max:
-            continue
-        inliers = np.abs((points - a) @ normal) < threshold
-        if inliers.sum() > best[2].sum():
-            best = (normal, -float(a @ normal), inliers)
-    normal, _, inliers = best
-    if inliers.sum() >= 3:  # refit on the inliers (least squares)
-        centre = points[inliers].mean(axis=0)
-        normal = np.linalg.svd(points[inliers] - centre)[2][2]
-        normal = normal * np.sign(normal @ up)
-        return normal, -float(centre @ normal), inliers
-    return best
 
 
 def floor_frame(landmarks: np.ndarray, points: np.ndarray, view: np.ndarray, cfg: VideoConfig,
@@ -222,25 +199,28 @@ def floor_frame(landmarks: np.ndarray, points: np.ndarray, view: np.ndarray, cfg
     the first camera's viewing direction ``view`` laid level; the origin is under the person's
     first position.
     """
-    hips = 0.5 * (landmarks[:, landmark("left_hip")] + landmarks[:, landmark("right_hip")])
-    trunk = 0.5 * (landmarks[:, landmark("left_shoulder")] + landmarks[:, landmark("right_shoulder")]) - hips
+    hips, trunk = hips_and_trunk(landmarks)
     ok = np.isfinite(trunk).all(axis=1)
     up = np.median(trunk[ok] / np.linalg.norm(trunk[ok], axis=1, keepdims=True), axis=0)
     up /= np.linalg.norm(up)
     feet = landmarks[ok][:, _FEET_INDEX]  # (K, 6, 3)
     lowest = feet[np.arange(len(feet)), np.argmin(feet @ up, axis=1)]
-    source, normal, offset, inliers = "feet", up, 0.0, np.zeros(0, bool)
+    min_cos = np.cos(np.deg2rad(cfg.max_floor_tilt_deg))
+    source, found = "feet", None
     if len(points):
         offsets = points[:, None, :] - lowest[None, ::5, :]
         horizontal = offsets - (offsets @ up)[..., None] * up
         near = points[np.linalg.norm(horizontal, axis=2).min(axis=1) < 1.0]
         if len(near) >= 30:
-            normal, offset, inliers = _plane(near, cfg.floor_threshold, rng, up, cfg.max_floor_tilt_deg)
+            found = ransac_plane(near, up, min_cos, cfg.floor_threshold, cfg.ransac_iterations, rng)
+        if found is not None:
             # The floor is the level layer the feet stand on, not one above or below them (a kerb, a step).
-            stand = np.percentile(lowest @ normal + offset, 10)
+            stand = np.percentile(lowest @ found[0] + found[1], 10)
             source = "scene points" if abs(stand) <= cfg.floor_feet_tolerance else "feet"
     if source == "feet":
-        normal, offset, inliers = _plane(lowest, cfg.floor_threshold, rng, up, cfg.max_floor_tilt_deg)
+        found = ransac_plane(lowest, up, min_cos, cfg.floor_threshold, cfg.ransac_iterations, rng)
+    # Feet too scattered for any plane: level with the trunk through their median height.
+    normal, offset, inliers = found or (up, -float(np.median(lowest @ up)), np.zeros(len(lowest), bool))
     x = view - (view @ normal) * normal
     x /= np.linalg.norm(x)
     rot = np.stack([x, np.cross(normal, x), normal])  # rows: the floor frame's axes
@@ -253,8 +233,6 @@ def floor_frame(landmarks: np.ndarray, points: np.ndarray, view: np.ndarray, cfg
     return transform, {"floor_source": source, "floor_inliers": int(inliers.sum()), "trunk_to_floor_deg": tilt}
 
 
-_FEET_INDEX = [landmark(n) for n in FEET]
-
 
 def upright(landmarks: np.ndarray, hip_share: float) -> tuple[np.ndarray, float]:
     """Landmarks turned, each frame about its hips' midpoint, by the one rotation that makes the
@@ -265,8 +243,7 @@ def upright(landmarks: np.ndarray, hip_share: float) -> tuple[np.ndarray, float]
     bundled real video, the walking trunk came out 6-12° off the floor's normal, mostly towards the
     camera, and the humanoid leaned back 13-24° in its walk. People stand and walk upright on
     average; a seated or bending trunk keeps its lean relative to that."""
-    hips = 0.5 * (landmarks[:, landmark("left_hip")] + landmarks[:, landmark("right_hip")])
-    trunk = 0.5 * (landmarks[:, landmark("left_shoulder")] + landmarks[:, landmark("right_shoulder")]) - hips
+    hips, trunk = hips_and_trunk(landmarks)
     ok = np.isfinite(trunk).all(axis=1)
     height = np.where(ok, hips[:, 2], -np.inf)
     standing = ok & (height >= hip_share * height.max())
@@ -326,11 +303,16 @@ def find_seats(motion: Motion, points: np.ndarray, cfg: VideoConfig) -> list[Sea
     return found
 
 
+def seated_underside(motion: Motion) -> np.ndarray:
+    """(T,) height of the body's underside where it sits: the 10 % quantile of the seat parts' contact patches."""
+    geometry = body_geometry(motion)
+    patches = [geometry.patches[BODY_NAMES.index(b)][..., 2] for b in PARTS["seat"]]
+    return np.quantile(np.concatenate(patches, axis=1), 0.1, axis=1)
+
+
 def seat_gaps(motion: Motion, seats: list[Seat]) -> np.ndarray:
     """Per seat, the median height of the seated body's underside above the seat's top over its frames."""
-    geometry = body_geometry(motion)
-    seat_bodies = [BODY_NAMES.index(b) for b in PARTS["seat"]]
-    underside = np.quantile(np.concatenate([geometry.patches[b][..., 2] for b in seat_bodies], axis=1), 0.1, axis=1)
+    underside = seated_underside(motion)
     return np.array([np.median(underside[s.start:s.stop]) - s.top for s in seats])
 
 
@@ -344,12 +326,6 @@ def hip_drop(seats: list[Seat], depths: np.ndarray, num_frames: int, ramp: int) 
     return drop
 
 
-def _foot_heights(motion: Motion, model) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 2) sole height of each foot (the lower of its heel's and toe's) and (T, 2) planted."""
-    soles = sole_points(model, motion.qpos())  # (T, 4, 3): L heel, L toe, R heel, R toe
-    return np.minimum(soles[:, 0::2, 2], soles[:, 1::2, 2]), planted_feet(motion, model)
-
-
 def settle(landmarks: np.ndarray, first: Motion, seats: list[Seat], cfg: VideoConfig, model,
            iterations: int = 8) -> tuple[Motion, np.ndarray]:
     """The motion with each planted foot on the floor and the hips resting on ``seats``, and each
@@ -360,17 +336,18 @@ def settle(landmarks: np.ndarray, first: Motion, seats: list[Seat], cfg: VideoCo
     a hand's width above its seat. Here, in the landmarks (whose legs already have our lengths and
     which stand where ``first`` does), each foot planted in ``first`` is moved to the floor and the
     hips onto their seat (and any other foot below the floor up to it), the knees are re-solved,
-    and the motion is retargeted without moving the body up or down. The knees' new bend moves the feet again, so both moves are refined from
-    what remains: the foot's by half of it (the full step overshoots and oscillates; measured on
-    the bundled real video: planted feet median 0.0 cm, p90 2.2 cm after 8 steps)."""
+    and the motion is retargeted without moving the body up or down. The knees' new bend moves
+    the feet again, so both moves are refined from what remains: the foot's by half of it (the
+    full step overshoots and oscillates; measured on the bundled real video: planted feet median
+    0.0 cm, p90 2.2 cm after 8 steps)."""
     thigh, shin = leg_lengths(model)
     ramp = max(1, int(round(cfg.seat_blend * first.fps)))
     depths = np.maximum(seat_gaps(first, seats), 0.0) if seats else np.zeros(0)
-    _, planted = _foot_heights(first, model)
+    planted = planted_feet(first, model)
     lift = np.zeros((first.num_frames, 2))
     motion = first
     for _ in range(iterations):
-        heights, _ = _foot_heights(motion, model)
+        heights = foot_heights(sole_points(model, motion.qpos()))
         # Planted feet onto the floor; any other foot at least out of it (a swinging foot 4 cm under
         # the floor is pushed up by the simulated contact and trips the body).
         error = np.where(planted, heights, np.minimum(heights, 0.0))
@@ -382,12 +359,10 @@ def settle(landmarks: np.ndarray, first: Motion, seats: list[Seat], cfg: VideoCo
     return motion, seat_gaps(motion, seats) if seats else np.zeros(0)
 
 
-def _passed_through(box: Box, motion: Motion, body_pos: np.ndarray, model, margin: float = 0.02) -> bool:
-    """Whether the motion's joints or soles pass through ``box``: a level top the person walked
-    through is a slice of a slope or a bush, not a surface."""
-    soles = sole_points(model, motion.qpos())
-    points = np.concatenate([body_pos, soles], axis=1).reshape(-1, 3)
-    local = np.abs((points - box.center) @ box.rotation)
+def _passed_through(box: Box, body_points: np.ndarray, margin: float = 0.02) -> bool:
+    """Whether any of the motion's ``body_points`` (joints and soles, (N, 3)) lies inside ``box``:
+    a level top the person walked through is a slice of a slope or a bush, not a surface."""
+    local = np.abs((body_points - box.center) @ box.rotation)
     return bool(np.any(np.all(local <= box.half_size - margin, axis=1)))
 
 
@@ -503,7 +478,7 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
         try:
             scale, ratios = metric_scale(track, in_camera, cameras, cfg.scale_window_px)
         except ValueError as err:  # the scene is there but cannot be scaled: treat the camera as fixed
-            cameras = static_camera(len(frames), cameras.intrinsic, str(err))
+            cameras = static_camera(len(frames), cameras.intrinsic, str(err), cameras.seconds)
     c2w = cameras.cam_c2w.copy()
     c2w[:, :3, 3] *= scale
     in_sfm = np.einsum("tab,tjb->tja", c2w[:, :3, :3], in_camera) + c2w[:, None, :3, 3]
@@ -526,15 +501,13 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     seat_records = [{"bodies": list(s.bodies), "frames": [s.start, s.stop], "seat_top": round(s.top, 3),
                      "underside_above_seat": round(float(g), 3)} for s, g in zip(found, gaps)]
     body_pos = compute_kinematics(motion, model).body_pos
-    tops = [b for b in level_tops(points, body_pos[:, 0], cfg.planes) if not _passed_through(b, motion, body_pos, model)]
+    body_points = np.concatenate([body_pos, sole_points(model, motion.qpos())], axis=1).reshape(-1, 3)
+    tops = [b for b in level_tops(points, body_pos[:, 0], cfg.planes) if not _passed_through(b, body_points)]
     boxes = [ground_box(points, body_pos[:, 0], cfg.planes), *tops, *(s.box for s in found)]
     timings["motion_and_planes"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    geometry = body_geometry(motion)
-    contacts = filter_contacts(kinematic_contacts(motion, cfg.contact.kinematic, geometry), motion,
-                               cfg.contact.filter, geometry)
-    completion = complete_support(contacts, boxes, replace(cfg.contact.completion, floor_height=None))
+    completion = contact_completion(motion, boxes, "kinematic", cfg.contact)
     timings["contact"] = time.perf_counter() - start
 
     flags, warn = quality_flags(track, cameras, scale, ratios, in_camera)

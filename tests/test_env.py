@@ -177,7 +177,8 @@ def test_torchrl_wraps_the_batched_env(sway_clip):
     assert rollout.batch_size == (3, 70) and rollout["next", "done"].any()
     going = ~rollout["next", "done"].squeeze(-1).numpy()  # an episode's end step reads the next one's reset
     np.testing.assert_allclose(rollout["next", "reward"].squeeze(-1).numpy()[going],
-                               sum(rollout["next", f"reward_{t}"].numpy() for t in REWARD_TERMS)[going], rtol=1e-5, atol=1e-5)
+                               sum(rollout["next", f"reward_{t}"].numpy() for t in REWARD_TERMS)[going],
+                               rtol=1e-5, atol=1e-5)
     env.close()
 
 
@@ -190,7 +191,8 @@ def test_next_step_autoreset_for_gymnasium_wrappers(sway_clip):
     kwargs = dict(num_envs=2, vectorization_mode="vector_entry_point", clip=str(sway_clip))
     nxt = gym.make_vec("CrispTrack-v0", autoreset_mode="next_step", **kwargs)
     same = gym.make_vec("CrispTrack-v0", **kwargs)
-    assert nxt.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP and same.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    assert nxt.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    assert same.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
     start = {"start_frame": [50, 55]}
     obs_n, _ = nxt.reset(seed=0, options=start)
     obs_s, _ = same.reset(seed=0, options=start)

@@ -39,8 +39,8 @@ def landmarks_of(motion, model) -> np.ndarray:
             mirror = np.array([1, 1 if side == "left" else -1, 1])
             out[:, i] = at(f"{side[0].upper()}_{body}", mirror * offset)
         else:  # the face: ears beside the head, the nose in front, the rest near the nose
-            head = "Head"
-            out[:, i] = at(head, {"left_ear": (0, 0.07, 0.05), "right_ear": (0, -0.07, 0.05)}.get(name, (0.1, 0, 0.035)))
+            face = {"left_ear": (0, 0.07, 0.05), "right_ear": (0, -0.07, 0.05)}
+            out[:, i] = at("Head", face.get(name, (0.1, 0, 0.035)))
     return out
 
 

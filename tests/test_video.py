@@ -126,7 +126,8 @@ def test_scale_and_floor_from_known_geometry():
     intrinsic = _pinhole()
     in_camera = np.einsum("tba,tjb->tja", c2w[:, :3, :3], world - c2w[:, None, :3, 3])
     pixels = in_camera @ intrinsic.T
-    track = PersonTrack(image=pixels[..., :2] / pixels[..., 2:], world=world - world[:, :1], visibility=np.ones((frames, 33)),
+    track = PersonTrack(image=pixels[..., :2] / pixels[..., 2:], world=world - world[:, :1],
+                        visibility=np.ones((frames, 33)),
                         masks=np.zeros((frames, 480, 640), bool))
     sfm_c2w = c2w.copy()
     sfm_c2w[:, :3, 3] /= s_true
@@ -184,7 +185,7 @@ def test_real_video_frames_become_a_clip_without_network(tmp_path, monkeypatch):
     refusing = [True]
 
     def refuse(event, args):
-        if refusing[0] and (event in ("socket.connect", "socket.bind", "socket.getaddrinfo") or event == "urllib.Request"):
+        if refusing[0] and event in ("socket.connect", "socket.bind", "socket.getaddrinfo", "urllib.Request"):
             opened.append(event)
             raise RuntimeError(f"network use in the video path: {event}")
 

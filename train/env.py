@@ -61,7 +61,8 @@ class TrainingReward:
             raise ValueError(f"scale must be positive and energy_cap non-negative or None, got {self}")
 
     def __call__(self, reward: np.ndarray, terms: dict[str, np.ndarray]) -> np.ndarray:
-        """(N,) training rewards from the env's rewards and their terms (:func:`~crisp_gym.envs.tracking.terms_from_info`)."""
+        """(N,) training rewards from the env's rewards and their terms
+        (:func:`~crisp_gym.envs.tracking.terms_from_info`)."""
         if self.energy_cap is not None:
             energy = terms["energy"]
             capped = reward - energy + np.maximum(energy, -self.energy_cap)
