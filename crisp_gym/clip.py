@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from crisp_gym.atomic import atomic_directory
-from crisp_gym.motion import Motion
+from crisp_gym.file_errors import reading
+from crisp_gym.motion import Motion, check_plausible
 from crisp_gym.scene import Box, load_primitives, save_primitives, write_scene_xml
 
 CLIP_FILES = ("scene.xml", "motion.npz", "primitives.json", "meta.json")
@@ -97,5 +98,11 @@ def load_clip_dir(directory: str | Path) -> Clip:
         raise ValueError(f"{directory / 'meta.json'} must hold a JSON object, got {type(meta).__name__}")
     if meta.get("scene_kind", "boxes") not in SCENE_KINDS:
         raise ValueError(f"{directory}/meta.json: scene_kind must be one of {SCENE_KINDS}, got {meta['scene_kind']!r}")
-    return Clip(path=directory, boxes=load_primitives(directory / "primitives.json"),
-                motion=Motion.load(directory / "motion.npz"), meta=meta)
+    motion = Motion.load(directory / "motion.npz")
+    try:
+        check_plausible(motion)  # a clip is simulated, exported and trained on: refuse what no body can do
+    except ValueError as err:
+        raise ValueError(f"{directory / 'motion.npz'}: {err}") from None
+    with reading(directory / "primitives.json", "primitives file"):
+        boxes = load_primitives(directory / "primitives.json")
+    return Clip(path=directory, boxes=boxes, motion=motion, meta=meta)

@@ -28,6 +28,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.atomic import write_text
+
 BODY_NAMES: tuple[str, ...] = (
     "Pelvis", "L_Hip", "L_Knee", "L_Ankle", "L_Toe", "R_Hip", "R_Knee", "R_Ankle", "R_Toe",
     "Torso", "Spine", "Chest", "Neck", "Head", "L_Thorax", "L_Shoulder", "L_Elbow", "L_Wrist",
@@ -330,8 +332,4 @@ DEFAULT_MODEL_PATH = Path(__file__).resolve().parent.parent / "assets" / "humano
 
 def write_default_model(path: Path = DEFAULT_MODEL_PATH) -> Path:
     """Write the default humanoid's MJCF (the file shipped in ``assets/humanoid``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".xml.tmp")
-    tmp.write_text(build_humanoid_spec().to_xml())
-    tmp.replace(path)
-    return path
+    return write_text(path, build_humanoid_spec().to_xml())

@@ -37,8 +37,10 @@ import tyro
 from tqdm.auto import tqdm
 
 from crisp_gym.clip import write_clip
+from crisp_gym.file_errors import reading
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, StanceGrounding, check_plausible, ground, ground_stance, level_feet
+from crisp_gym.npz import read_npz
 from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip, user_clips_dir
 from crisp_gym.scene import floor_box
 
@@ -109,11 +111,7 @@ class ReadMotion:
 
 
 def _npz_keys(path: Path) -> set[str]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return set(data.files)
-    except (OSError, EOFError, ValueError, AttributeError) as err:
-        raise ValueError(f"{path} is not a readable npz archive ({err})") from None
+    return set(read_npz(path, "motion file", skip_objects=True))
 
 
 def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujoco.MjModel,
@@ -167,7 +165,8 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
         raise ValueError(f"grounding must be 'stance' or 'constant', got {grounding!r}")
     model = model if model is not None else build_humanoid()
     stance = StanceGrounding() if grounding == "stance" else None
-    motion, fmt, axis, offset = _read_source(path, source_fps, up_axis, model, stance)
+    with reading(path, "motion file"):
+        motion, fmt, axis, offset = _read_source(path, source_fps, up_axis, model, stance)
     if source_fps is not None:
         motion = replace(motion, fps=source_fps)
     rate = motion.fps

@@ -13,8 +13,6 @@ on what a posture means.
 
 from __future__ import annotations
 
-import zipfile
-import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -24,9 +22,15 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d, minimum_filter1d
 from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation, Slerp
 
+from crisp_gym.atomic import atomic_path
+from crisp_gym.file_errors import reading
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
+from crisp_gym.npz import read_npz
 
 FORMAT_VERSION = 1
+MIN_FPS = 1e-6
+"""The lowest frame rate a :class:`Motion` may have at all (below it, filters' widths underflow);
+importers bound frame rates far tighter, with messages that say why."""
 _TRUNCATE = 2.0  # standard deviations the stance corrections' Gaussian low-pass reaches
 
 
@@ -75,8 +79,8 @@ class Motion:
 
     def __post_init__(self) -> None:
         fps = float(np.asarray(self.fps).reshape(()))
-        if not np.isfinite(fps) or fps <= 0:
-            raise ValueError(f"fps must be a positive number, got {self.fps}")
+        if not (np.isfinite(fps) and fps >= MIN_FPS):
+            raise ValueError(f"fps must be a finite frame rate of at least {MIN_FPS:g}, got {self.fps}")
         object.__setattr__(self, "fps", fps)
         arrays = {k: np.asarray(getattr(self, k), dtype=float) for k in ("root_pos", "root_quat", "dof_pos")}
         t = arrays["root_pos"].shape[0] if arrays["root_pos"].ndim == 2 else -1
@@ -169,6 +173,9 @@ class Motion:
             return self
         t_old = np.arange(self.num_frames) / self.fps
         n_new = int(np.floor(self.duration * fps + 1e-9)) + 1
+        if n_new < 2:
+            raise ValueError(f"the motion lasts {self.duration:.3g} s ({self.num_frames} frames at {self.fps:g} fps), "
+                             f"less than one frame at {fps:g} fps; a motion needs at least 2 frames")
         t_new = np.arange(n_new) / fps
         interp = lambda a: np.stack([np.interp(t_new, t_old, col) for col in a.T], axis=1)  # noqa: E731
         slerp = Slerp(t_old, Rotation.from_quat(self.root_quat, scalar_first=True))
@@ -203,39 +210,34 @@ class Motion:
             arrays["contacts"] = self.contacts
         if self.skeleton_offsets is not None:
             arrays["skeleton_offsets"] = self.skeleton_offsets
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as f:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
-        tmp.replace(path)
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> Motion:
         """Read and validate a ``motion.npz``; hinges are returned in the humanoid's order."""
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"no motion file at {path}")
-        try:
-            return cls._read(path)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:  # truncated or bit-flipped
-            raise ValueError(f"{path} is not a readable npz archive ({type(err).__name__}: {err})") from None
+        data = read_npz(path, "motion file (motion.npz)")
+        with reading(path, "motion.npz"):
+            return cls._from_arrays(data, path)
 
     @classmethod
-    def _read(cls, path: Path) -> Motion:
-        with np.load(path, allow_pickle=False) as data:
-            keys = set(data.files)
-            required = {"fps", "root_pos", "root_quat", "dof_pos", "dof_names", "body_names"}
-            if not required <= keys:
-                raise ValueError(f"{path} is not a motion.npz: missing {sorted(required - keys)} "
-                                 f"(has {sorted(keys)})")
-            version = int(data["format_version"]) if "format_version" in keys else FORMAT_VERSION
-            if version != FORMAT_VERSION:
-                raise ValueError(f"{path}: format_version {version} is not supported (expected 1)")
+    def _from_arrays(cls, data: dict[str, np.ndarray], path: Path) -> Motion:
+        required = {"fps", "root_pos", "root_quat", "dof_pos", "dof_names", "body_names"}
+        if not required <= data.keys():
+            raise ValueError(f"{path} is not a motion.npz: missing {sorted(required - data.keys())} "
+                             f"(has {sorted(data)})")
+        version = np.asarray(data.get("format_version", FORMAT_VERSION))
+        if version.size != 1 or version.dtype.kind not in "iuf" or int(version.reshape(())) != FORMAT_VERSION:
+            raise ValueError(f"{path}: format_version {version} is not supported (expected {FORMAT_VERSION})")
+        try:
             motion = cls(
                 fps=data["fps"], root_pos=data["root_pos"], root_quat=data["root_quat"],
                 dof_pos=data["dof_pos"], dof_names=data["dof_names"], body_names=data["body_names"],
-                contacts=data["contacts"] if "contacts" in keys else None,
-                skeleton_offsets=data["skeleton_offsets"] if "skeleton_offsets" in keys else None)
+                contacts=data.get("contacts"), skeleton_offsets=data.get("skeleton_offsets"))
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
         return motion.in_humanoid_order()
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import platformdirs
 import yaml
 
+from crisp_gym.atomic import write_text
 from crisp_gym.clip import Clip, load_clip_dir
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -80,7 +81,12 @@ def resolve_clip(name_or_path: str | os.PathLike) -> Path:
     if name not in clips:
         raise ValueError(f"unknown clip {name!r}: not a directory and not registered; "
                          f"registered clips are {sorted(clips)}")
-    return clips[name]["path"]
+    path = clips[name]["path"]
+    if not path.is_dir():
+        registry = user_registry_path() if name in _read(user_registry_path()) else BUNDLED_REGISTRY
+        raise FileNotFoundError(f"clip {name!r} of {registry} is registered at {path}, which is not a folder "
+                                f"(moved or deleted? `crisp import-motion`/`crisp reconstruct --register` re-register)")
+    return path
 
 
 BUNDLED_TAG = "bundled"
@@ -141,8 +147,4 @@ def register_clip(name: str, path: str | Path, tags: list[str] | None = None,
     content = yaml.safe_load(registry.read_text()) if registry.is_file() else None
     content = content or {}
     content.setdefault("clips", {})[name] = {"path": str(Path(path).resolve()), "tags": list(tags or [])}
-    registry.parent.mkdir(parents=True, exist_ok=True)
-    tmp = registry.with_name(registry.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(content, sort_keys=True))
-    tmp.replace(registry)
-    return registry
+    return write_text(registry, yaml.safe_dump(content, sort_keys=True))

@@ -18,6 +18,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.atomic import write_text
+
 SOURCES = ("planar", "contact")
 SCENE_CONTYPE = 1
 SCENE_CONAFFINITY = 2
@@ -117,12 +119,7 @@ def floor_box(size: float = 40.0, thickness: float = 0.1, height: float = 0.0) -
 
 def save_primitives(boxes: list[Box], path: str | Path) -> Path:
     """Write ``primitives.json`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps([b.to_json() for b in boxes], indent=1))
-    tmp.replace(path)
-    return path
+    return write_text(path, json.dumps([b.to_json() for b in boxes], indent=1))
 
 
 def load_primitives(path: str | Path) -> list[Box]:
@@ -166,12 +163,7 @@ def build_scene_spec(boxes: list[Box], friction: tuple[float, float, float] = (1
 
 def write_scene_xml(boxes: list[Box], path: str | Path) -> Path:
     """Write ``scene.xml`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(build_scene_spec(boxes).to_xml())
-    tmp.replace(path)
-    return path
+    return write_text(path, build_scene_spec(boxes).to_xml())
 
 
 def boxes_from_model(model: mujoco.MjModel) -> list[Box]:

@@ -27,8 +27,10 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.atomic import atomic_path
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.motion import Motion, ground, hinge_angles_to_rotations, rotations_to_hinge_angles
+from crisp_gym.npz import read_npz
 
 SMPL_JOINT_NAMES: tuple[str, ...] = (
     "Pelvis", "L_Hip", "R_Hip", "Spine1", "L_Knee", "R_Knee", "Spine2", "L_Ankle", "R_Ankle",
@@ -66,25 +68,8 @@ def read_smpl_source(source: str | Path | Mapping[str, np.ndarray]) -> dict[str,
     """The arrays of SMPL parameters: an npz path (entries that need pickles skipped) or a dict."""
     if isinstance(source, Mapping):
         return {k: np.asarray(v) for k, v in source.items()}
-    path = Path(source)
-    if not path.is_file():
-        raise FileNotFoundError(f"no SMPL parameter file at {path}")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, EOFError, ValueError) as err:
-        raise ValueError(f"{path} is not a readable npz without pickles ({err}); expected "
-                         "global_orient, body_pose and transl arrays") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{path} holds a single array; expected an npz with global_orient, "
-                         "body_pose and transl")
-    arrays = {}
-    with data:
-        for key in data.files:
-            try:
-                arrays[key] = data[key]
-            except ValueError:  # an object array: loading it would run a pickle
-                continue
-    return arrays
+    return read_npz(source, "SMPL parameter file (global_orient, body_pose, transl or AMASS poses, trans)",
+                    skip_objects=True)
 
 
 _AMASS_WIDTHS = (72, 156, 165)
@@ -221,10 +206,7 @@ def save_smpl_params(motion: Motion, path: str | Path) -> Path:
     smpl_order[:, _BODY_INDEX] = local
     rotvecs = Rotation.from_matrix(smpl_order.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
                  transl=m.root_pos @ c, fps=np.float64(m.fps))
-    tmp.replace(path)
     return path

@@ -54,10 +54,12 @@ from scipy.spatial.transform import Rotation
 from sklearn.cluster import DBSCAN
 from sklearn.linear_model import LinearRegression, RANSACRegressor
 
+from crisp_gym.atomic import atomic_path
 from crisp_gym.balance import distance_outside_hull
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import Motion, compute_kinematics
+from crisp_gym.npz import read_npy, read_npz
 from crisp_gym.scene import Box
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY
 
@@ -391,16 +393,9 @@ def _vertex_bodies(vertex_body: np.ndarray) -> np.ndarray:
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise FileNotFoundError(f"no contact file at {path}")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise ValueError(f"{path} is not a readable .npz/.npy file: {err}") from None
-    if isinstance(data, np.ndarray):  # a bare .npy holds InteractVLM's per-vertex array
-        return {"pred_contact_3d_smplh": data}
-    with data:
-        return {k: data[k] for k in data.files}
+    if path.suffix.lower() == ".npy":  # a bare .npy holds InteractVLM's per-vertex array
+        return {"pred_contact_3d_smplh": read_npy(path, "contact file")}
+    return read_npz(path, "contact file (.npz or InteractVLM .npy)")
 
 
 def load_external_contacts(path: str | Path, motion: Motion, vertex_map: str | Path | None = None,
@@ -627,11 +622,8 @@ def save_contacts(contacts: list[Contact], path: str | Path) -> Path:
                   body=np.array([r[1] for r in rows], dtype=str),
                   point=np.array([r[2] for r in rows], dtype=float).reshape(-1, 3),
                   prob=np.array([r[3] for r in rows], dtype=float))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
-    tmp.replace(path)
     return path
 
 

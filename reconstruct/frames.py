@@ -52,6 +52,14 @@ class Frames:
         rot_err = np.abs(np.einsum("tij,tkj->tik", poses[:, :3, :3], poses[:, :3, :3]) - np.eye(3)).max()
         if rot_err > 1e-3:
             raise ValueError(f"cam_c2w rotations are not orthonormal (max |R Rᵀ - I| = {rot_err:.2e})")
+        mirrored = np.flatnonzero(np.linalg.det(poses[:, :3, :3]) < 0)
+        if mirrored.size:
+            raise ValueError(f"cam_c2w rotations of {mirrored.size} frames (first: {mirrored[0]}) have determinant -1: "
+                             "a mirror, not a camera pose (a flipped axis in the pose convention?)")
+        bad_row = np.flatnonzero(np.abs(poses[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) > 1e-6)
+        if bad_row.size:
+            raise ValueError(f"cam_c2w bottom rows must be [0, 0, 0, 1]; {bad_row.size} frames (first: {bad_row[0]}) "
+                             f"have {poses[bad_row[0], 3].tolist()} (transposed matrices?)")
         if not np.isfinite(self.fps) or self.fps <= 0:
             raise ValueError(f"fps must be positive, got {self.fps}")
         finite = np.isfinite(depth) & (depth > 0)

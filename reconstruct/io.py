@@ -45,8 +45,11 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
+from crisp_gym.atomic import atomic_path
+from crisp_gym.file_errors import reading
 from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.motion import Motion, hinge_angles_to_rotations
+from crisp_gym.npz import read_npz
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS, load_smpl_params
 from reconstruct.frames import Frames
 
@@ -80,23 +83,10 @@ _SMPL_KEYS = ("global_orient", "body_pose", "transl")
 # --------------------------------------------------------------------------- MegaSAM npz
 
 
-def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise FileNotFoundError(f"no {what} at {path}")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, EOFError, ValueError) as err:
-        raise ValueError(f"{path} is not a readable npz without pickles ({err}); expected a {what}") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{path} holds a single array; expected a {what}")
-    with data:
-        return {k: data[k] for k in data.files}
-
-
 def read_megasam_npz(path: str | Path) -> Frames:
     """A MegaSAM-style npz as :class:`Frames` (keys in the module docstring)."""
     path = Path(path)
-    data = _load_npz(path, "MegaSAM-style npz (depths, intrinsic, cam_c2w)")
+    data = read_npz(path, "MegaSAM-style npz (depths, intrinsic, cam_c2w)")
     missing = [k for k in ("depths", "intrinsic", "cam_c2w") if k not in data]
     if missing:
         raise ValueError(f"{path} lacks {missing}; a MegaSAM-style npz holds depths (T, H, W), intrinsic (3, 3), "
@@ -160,17 +150,20 @@ class RgbdFolderConfig:
     max_failures: float = 0.1
 
 
-def _read_list(path: Path) -> list[tuple[float, list[str]]]:
-    """``timestamp value...`` lines of a TUM text file, comments skipped."""
+def _read_list(path: Path, values: int = 1) -> list[tuple[float, list[str]]]:
+    """``timestamp value...`` lines (at least ``values`` values) of a TUM text file, comments skipped."""
     rows = []
     for number, line in enumerate(path.read_text().splitlines(), 1):
         parts = line.split()
         if not parts or parts[0].startswith("#"):
             continue
         try:
-            rows.append((float(parts[0]), parts[1:]))
+            stamp = float(parts[0])
         except ValueError:
-            raise ValueError(f"{path}:{number}: expected 'timestamp ...', got {line!r}") from None
+            stamp = np.nan
+        if not np.isfinite(stamp) or len(parts) < 1 + values:
+            raise ValueError(f"{path}:{number}: expected a timestamp and {values} value(s), got {line!r}")
+        rows.append((stamp, parts[1:]))
     if not rows:
         raise ValueError(f"{path} lists no frames")
     return rows
@@ -195,7 +188,7 @@ def _pair_by_time(depth_times: np.ndarray, rgb_times: np.ndarray, max_dt: float)
 
 def _tum_poses(path: Path, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera → world poses interpolated at ``times`` and which times the trajectory covers."""
-    rows = _read_list(path)
+    rows = _read_list(path, values=7)
     stamps = np.array([r[0] for r in rows])
     try:
         values = np.array([[float(x) for x in r[1][:7]] for r in rows])
@@ -275,7 +268,11 @@ def _folder_camera(folder: Path, default: tuple[float, float, float, float], def
 def _read_image(path: Path, what: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"the {what} image {path} is missing")
-    return iio.imread(path)
+    try:
+        return iio.imread(path)
+    except Exception as err:  # noqa: BLE001 - any decoder failure is a damaged or foreign file
+        reason = (str(err).strip().splitlines() or [""])[0]  # imageio's own messages run over many lines
+        raise ValueError(f"the {what} image {path} cannot be read ({type(err).__name__}: {reason})") from None
 
 
 def _load_images(color_paths: list[Path], depth_paths: list[Path], depth_scale: float,
@@ -442,11 +439,13 @@ def read_frames(path: str | Path, progress: bool = True, rgbd: RgbdFolderConfig 
     if path.is_file():
         if path.suffix.lower() != ".npz":
             raise ValueError(f"{path}: a depth-video file must be a MegaSAM-style .npz")
-        return read_megasam_npz(path)
+        with reading(path, "MegaSAM-style npz"):
+            return read_megasam_npz(path)
     if path.is_dir():
-        if (path / "input.npz").is_file():
-            return read_megasam_npz(path / "input.npz")
-        return read_rgbd_folder(path, rgbd, progress=progress)
+        with reading(path, "depth video folder"):
+            if (path / "input.npz").is_file():
+                return read_megasam_npz(path / "input.npz")
+            return read_rgbd_folder(path, rgbd, progress=progress)
     raise FileNotFoundError(f"no depth video at {path} (expected an .npz or an RGB-D folder)")
 
 
@@ -470,6 +469,19 @@ def is_plain_video(path: str | Path) -> bool:
     return not (path / "depth").is_dir() and bool(_image_files(path))
 
 
+VIDEO_FPS_RANGE = (1.0, 1000.0)
+"""Frame rates a video can have (frames per second): below one frame a second there is no motion
+to follow, above a thousand the header is wrong."""
+
+
+def check_video_fps(rate: float, what: str) -> float:
+    """``rate`` if it lies in :data:`VIDEO_FPS_RANGE`, else a ValueError naming ``what``."""
+    low, high = VIDEO_FPS_RANGE
+    if not (np.isfinite(rate) and low <= rate <= high):
+        raise ValueError(f"{what}: a video's frame rate must be in [{low:g}, {high:g}] fps, got {rate:g}")
+    return float(rate)
+
+
 def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, max_frames: int = 1800,
                progress: bool = True) -> tuple[np.ndarray, float]:
     """(T, H, W, 3) uint8 RGB frames of a video file or an image folder, downscaled so the long
@@ -481,6 +493,8 @@ def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, 
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no video at {path}")
+    if fps is not None:
+        check_video_fps(fps, "--fps")
     if path.is_dir():
         files = _image_files(path)
         if not files:
@@ -499,7 +513,8 @@ def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, 
             meta = iio.immeta(path)
         except Exception as err:  # noqa: BLE001 - any decoder failure is an unreadable file
             raise ValueError(f"{path}: cannot read the video ({err})") from None
-        rate = float(fps or meta.get("fps") or DEFAULT_FPS)
+        rate = check_video_fps(float(fps or meta.get("fps") or DEFAULT_FPS),
+                               f"{path} (pass --fps if its header is wrong)")
         total = None
         source = iio.imiter(path)
     frames = []
@@ -519,8 +534,6 @@ def read_video(path: str | Path, max_side: int = 960, fps: float | None = None, 
             raise ValueError(f"{path} has more than {max_frames} frames; trim it first")
     if len(frames) < 2:
         raise ValueError(f"{path}: a video needs at least 2 frames, got {len(frames)}")
-    if not np.isfinite(rate) or rate <= 0:
-        raise ValueError(f"{path}: frame rate must be positive, got {rate}")
     return np.stack(frames), rate
 
 
@@ -552,7 +565,7 @@ def _read_smpl_source(path: Path) -> dict[str, np.ndarray]:
     """The arrays of a motion npz, or flat SMPL parameter arrays from a GVHMR ``.pt``
     (``smpl_params_incam`` preferred)."""
     if path.suffix.lower() == ".npz":
-        return _load_npz(path, "motion npz (motion.npz or SMPL parameters)")
+        return read_npz(path, "motion npz (motion.npz or SMPL parameters)")
     import torch
 
     try:
@@ -592,7 +605,8 @@ def read_motion(path: str | Path, *, fps: float | None = None, up_axis: str = "y
         motion = Motion.load(path)
         return MotionInput(motion.resample(fps) if fps else motion, "world", str(path))
     if frame not in ("camera", "camera0"):
-        raise ValueError(f"SMPL parameters are read in a camera frame: frame must be 'camera' or 'camera0', got {frame!r}")
+        raise ValueError("SMPL parameters are read in a camera frame: frame must be 'camera' or 'camera0', "
+                         f"got {frame!r}")
     missing = [k for k in _SMPL_KEYS if k not in params]
     if missing:
         raise ValueError(f"{path}: an npz motion needs motion.npz keys (dof_pos, ...) or SMPL keys "
@@ -626,10 +640,7 @@ def save_camera_smpl(motion: Motion, path: str | Path, pelvis_offset=SMPL_PELVIS
     smpl = np.stack([local[:, BODY_NAMES.index(SMPL_TO_BODY[j])] for j in SMPL_JOINT_NAMES], axis=1)
     rotvecs = Rotation.from_matrix(smpl.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
                  transl=m.root_pos - np.asarray(pelvis_offset, dtype=float), fps=np.float64(m.fps))
-    tmp.replace(path)
     return path

@@ -46,7 +46,15 @@ from reconstruct.contact import (
     load_external_contacts,
 )
 from reconstruct.frames import Frames
-from reconstruct.io import MotionInput, RgbdFolderConfig, is_plain_video, read_frames, read_motion, read_video
+from reconstruct.io import (
+    MotionInput,
+    RgbdFolderConfig,
+    check_video_fps,
+    is_plain_video,
+    read_frames,
+    read_motion,
+    read_video,
+)
 from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
 
 
@@ -231,6 +239,8 @@ def run(args: ReconstructArgs) -> Path:
     if isinstance(contacts, Path) and not contacts.is_file():
         raise FileNotFoundError(f"--contacts {contacts}: expected 'kinematic', 'none' or an existing contacts file")
 
+    if args.fps is not None:
+        check_video_fps(args.fps, "--fps")
     if args.motion is None and is_plain_video(args.input):
         return run_video(args, name, out)
     start = time.perf_counter()

@@ -36,10 +36,11 @@ import mujoco
 import numpy as np
 import yaml
 from scipy.interpolate import PchipInterpolator
-from scipy.optimize import lsq_linear
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.atomic import write_text
 from crisp_gym.balance import GRAVITY
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import (
@@ -1220,11 +1221,8 @@ def bundle_clips(out_dir: Path = CLIPS_DIR, registry: Path = REGISTRY) -> dict[s
         rel = Path(path).resolve().relative_to(registry.resolve().parent) \
             if Path(path).resolve().is_relative_to(registry.resolve().parent) else Path(path).resolve()
         entries[name] = {"path": rel.as_posix(), "tags": TAGS[name]}
-    registry.parent.mkdir(parents=True, exist_ok=True)
-    tmp = registry.with_name(registry.name + ".tmp")
-    tmp.write_text("# Bundled clips, written by `python -m reconstruct.synth`.\n"
-                   + yaml.safe_dump({"clips": entries}, sort_keys=True))
-    tmp.replace(registry)
+    write_text(registry, "# Bundled clips, written by `python -m reconstruct.synth`.\n"
+               + yaml.safe_dump({"clips": entries}, sort_keys=True))
     return written
 
 

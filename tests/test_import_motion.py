@@ -243,3 +243,27 @@ def test_motions_no_body_can_do_are_refused_naming_frame_and_joint(corrupt, mess
     with pytest.raises(ValueError, match=message):
         read_motion(path, model=model)
     check_plausible(walk)  # the bundled walk passes
+
+
+def test_a_motion_shorter_than_one_output_frame_says_so(walk, model, tmp_path):
+    """Two frames at 120 fps last 8 ms: resampled to 30 fps they are one frame. The message says
+    that, not only that a motion needs two frames (which the file has)."""
+    path = replace(walk.slice(0, 2), fps=120.0, contacts=None).save(tmp_path / "short.npz")
+    with pytest.raises(ValueError, match=r"lasts 0.00833 s \(2 frames at 120 fps\), less than one frame at 30 fps"):
+        read_motion(path, model=model)
+
+
+def test_a_clip_no_body_can_do_is_refused_by_every_command_that_loads_it(walk, tmp_path, capsys):
+    """The issue's 1e300 BVH became a clip that export wrote to every format and training crashed
+    on. A clip written by other means (here directly) is checked where clips are loaded."""
+    from crisp_gym.clip import load_clip_dir, write_clip
+    from crisp_gym.scene import floor_box
+
+    motion = replace(walk, root_pos=walk.root_pos.copy(), contacts=None)
+    motion.root_pos[40, 0] = 5.6e298
+    clip = write_clip(tmp_path / "bad", [floor_box()], motion, {"source": "test"})
+    with pytest.raises(ValueError, match=r"bad/motion.npz: frame 40: the root is 5.6e\+298 m"):
+        load_clip_dir(clip)
+    assert cli.main(["export", str(clip), "-o", str(tmp_path / "out")]) == 2
+    assert "frame 40: the root is 5.6e+298 m" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -151,6 +151,8 @@ def test_megasam_npz_is_read_with_its_optional_keys(tmp_path):
     (lambda a: a.update(intrinsic=np.eye(4)), r"intrinsic must be \(3, 3\)"),
     (lambda a: a.update(cam_c2w=np.tile(np.eye(4), (2, 1, 1))), r"cam_c2w must be \(3, 4, 4\)"),
     (lambda a: a["cam_c2w"].__setitem__((1, 0, 3), np.nan), "NaN or infinite values in 1 frames"),
+    (lambda a: a["cam_c2w"].__setitem__((2, 2, 2), -1.0), "determinant -1: a mirror"),
+    (lambda a: a["cam_c2w"].__setitem__((1, 3, 2), 5.0), r"bottom rows must be \[0, 0, 0, 1\]"),
     (lambda a: a.update(images=np.zeros((3, 6, 8, 3), np.float32)), "images must be uint8"),
     (lambda a: a.update(masks=np.zeros((3, 6, 7))), "masks must be"),
     (lambda a: a.update(depths=np.full((3, 6, 8), np.nan)), "no valid"),

@@ -190,3 +190,11 @@ def test_bench_scores_weak_effects_apart():
     assert weak["weak"] and weak["correct"]
     assert not strong["weak"] and not strong["correct"]
     assert abs(DETECTABLE - np.sqrt(1.25)) < 1e-12
+
+
+def test_an_unknown_effect_family_is_named_before_any_fit():
+    """``--config.families friction`` (no such family) made an empty library and an IndexError
+    after the replay was set up; the config now names it and the families there are."""
+    with pytest.raises(ValueError, match=r"unknown effect families \['friction'\]; the library's are delay, "):
+        DiagnoseConfig(families=("friction",))
+    assert DiagnoseConfig(families=("coulomb_friction",)).families == ("coulomb_friction",)

@@ -542,3 +542,30 @@ def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, mon
     assert load_checkpoint(tmp_path / "best.pt")["iteration"] == 2
     train(replace(cfg, frames=5 * 128, resume=True))  # (0.95, 89) is better: replaced
     assert load_checkpoint(tmp_path / "best.pt")["iteration"] == 5
+
+
+@pytest.mark.parametrize("field", ["actor_lr", "critic_lr", "clip_epsilon", "max_grad_norm"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -1e-4])
+def test_rates_that_no_optimiser_can_use_are_refused_by_the_config(clip_dir: Path, field: str, value: float) -> None:
+    """``--actor-lr nan`` was accepted until the first update failed with "actions must be finite"."""
+    from train.ppo import TrainConfig
+
+    with pytest.raises(ValueError, match=f"{field}=.*must be positive and finite"):
+        TrainConfig(clip=str(clip_dir), **{field: value})
+
+
+def test_files_that_are_not_runs_get_a_one_line_error(tmp_path: Path) -> None:
+    """A random ``.pt`` to eval gave "pop from empty list"; a resume without a checkpoint a bare
+    FileNotFoundError traceback. Each now names the file and what it is not."""
+    from train.ppo import load_checkpoint, load_policy
+
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="other.pt is neither a crisp-gym training checkpoint nor a policy file"):
+        load_policy(tmp_path / "other.pt")
+    (tmp_path / "garbage.pt").write_bytes(b"\x00\x01" * 100)
+    with pytest.raises(ValueError, match="garbage.pt is not a .*torch file"):
+        load_policy(tmp_path / "garbage.pt")
+    with pytest.raises(FileNotFoundError, match=f"no checkpoint at {tmp_path / 'run' / 'checkpoint.pt'}"):
+        load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    with pytest.raises(ValueError, match="other.pt is not a version-.* crisp-gym training checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")

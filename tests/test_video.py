@@ -67,6 +67,10 @@ def test_bad_videos_are_named(tmp_path):
     iio.imwrite(one / "0.png", _frames(1)[0])
     with pytest.raises(ValueError, match="at least 2 frames"):
         read_video(one, progress=False)
+    iio.imwrite(one / "1.png", _frames(1)[0])
+    for rate in (1e-6, 0.0, np.nan, 1e5):  # the 1e-6 fps made a one-frame motion, then a misleading error
+        with pytest.raises(ValueError, match=r"frame rate must be in \[1, 1000\] fps"):
+            read_video(one, fps=rate, progress=False)
     depth = tmp_path / "rgbd"
     (depth / "depth").mkdir(parents=True)
     iio.imwrite(depth / "0.png", _frames(1)[0])

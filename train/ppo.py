@@ -50,6 +50,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from crisp_gym.atomic import atomic_path, write_text
+from crisp_gym.file_errors import CONTENT_ERRORS, reading
 from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -406,7 +407,8 @@ def _load_file(path: Path) -> Any:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:  # garbage, or objects that only running pickled code would make
         raise ValueError(f"{path} is not a torch file of tensors and plain values (corrupt, or not ours)") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as err:  # e.g. a truncated zip archive
+    # e.g. a truncated zip archive; a damaged pickle stream fails in the unpickler's own ways
+    except (RuntimeError, EOFError, OSError, ValueError, *CONTENT_ERRORS) as err:
         reason = str(err).strip().split(". ")[0] if str(err).strip() else type(err).__name__
         raise ValueError(f"{path} is not a readable torch file ({reason})") from None
 
@@ -430,7 +432,15 @@ def load_policy(path: str | Path, device: torch.device | str = "cpu") -> tuple[F
     ``path`` is a run directory (its ``policy.pt`` if it has one, else its ``checkpoint.pt``),
     a training checkpoint or a policy file written by :func:`export_policy`.
     """
-    _, state = _read_policy_source(path)
+    path, state = _read_policy_source(path)
+    try:
+        with reading(path, "policy"):
+            return _build_policy(state, device)
+    except RuntimeError as err:  # torch: weights whose shapes disagree with the configured model
+        raise ValueError(f"{path}: a damaged or inconsistent policy ({err})") from err
+
+
+def _build_policy(state: dict[str, Any], device: torch.device | str) -> tuple[FixedStdGaussian, TrainConfig]:
     cfg = config_from_dict(state["config"])
     if state.get("kind") == "policy":
         num_targets = state["actor"]["actor.normalizer.targets.mean"].shape[0]

@@ -52,6 +52,7 @@ from scipy.spatial.transform import Rotation
 from crisp_gym.atomic import atomic_path
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics, hinge_angles_to_rotations
+from crisp_gym.npz import read_npz
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS
 
 QUAT_ORDERS = ("wxyz", "xyzw")
@@ -210,12 +211,15 @@ def read_beyondmimic(data: dict[str, np.ndarray], source: str = "motion") -> Mot
     if body_pos.ndim != 3 or body_quat.ndim != 3 or body_pos.shape[-1] != 3 or body_quat.shape[-1] != 4:
         raise ValueError(f"{source}: body_pos_w must be (T, B, 3) and body_quat_w (T, B, 4), got "
                          f"{body_pos.shape} and {body_quat.shape}")
-    if "body_names" in data and str(data["body_names"][0]) != BODY_NAMES[0]:
-        raise ValueError(f"{source}: the first body must be the root {BODY_NAMES[0]!r}, got {data['body_names'][0]!r}")
-    names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in data else DOF_NAMES
-    return Motion(fps=float(np.asarray(data["fps"]).reshape(-1)[0]), root_pos=body_pos[:, 0],
-                  root_quat=body_quat[:, 0], dof_pos=np.asarray(data["joint_pos"]),
-                  dof_names=names).in_humanoid_order()
+    bodies = np.atleast_1d(data.get("body_names", BODY_NAMES))
+    if str(bodies[0]) != BODY_NAMES[0]:
+        raise ValueError(f"{source}: the first body must be the root {BODY_NAMES[0]!r}, got {bodies[0]!r}")
+    fps = np.asarray(data["fps"]).reshape(-1)
+    if fps.size != 1 or fps.dtype.kind not in "iuf":
+        raise ValueError(f"{source}: fps must be one number, got {data['fps']!r}")
+    names = tuple(str(n) for n in np.atleast_1d(data["joint_names"])) if "joint_names" in data else DOF_NAMES
+    return Motion(fps=float(fps[0]), root_pos=body_pos[:, 0], root_quat=body_quat[:, 0],
+                  dof_pos=np.asarray(data["joint_pos"]), dof_names=names).in_humanoid_order()
 
 
 def write_motion_npz(motion: Motion, path: str | Path, layout: str = "fields", quat_order: str = "wxyz",
@@ -248,21 +252,19 @@ def read_motion_npz(path: str | Path) -> Motion:
     SMPL and AMASS files are read by :func:`crisp_gym.smpl.load_smpl_params`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no motion file at {path}")
-    with np.load(path, allow_pickle=False) as data:
-        keys = set(data.files)
-        if {"qpos", "qpos_names", "fps"} <= keys:
-            names = [str(n) for n in data["qpos_names"]]
-            qpos = data["qpos"]
-            return Motion(fps=data["fps"], root_pos=qpos[:, :3], root_quat=qpos[:, 3:7], dof_pos=qpos[:, 7:],
-                          dof_names=names[7:]).in_humanoid_order()
-        if {"root_pos", "root_rot", "quat_order", "dof_pos", "dof_names", "fps"} <= keys:
-            return Motion(fps=data["fps"], root_pos=data["root_pos"],
-                          root_quat=from_order(data["root_rot"], str(data["quat_order"])),
-                          dof_pos=data["dof_pos"], dof_names=data["dof_names"]).in_humanoid_order()
-        if {"joint_pos", "body_pos_w", "body_quat_w"} <= keys:
-            return read_beyondmimic({k: data[k] for k in data.files}, str(path))
+    data = read_npz(path, "motion file")
+    keys = set(data)
+    if {"qpos", "qpos_names", "fps"} <= keys:
+        names = [str(n) for n in data["qpos_names"]]
+        qpos = data["qpos"]
+        return Motion(fps=data["fps"], root_pos=qpos[:, :3], root_quat=qpos[:, 3:7], dof_pos=qpos[:, 7:],
+                      dof_names=names[7:]).in_humanoid_order()
+    if {"root_pos", "root_rot", "quat_order", "dof_pos", "dof_names", "fps"} <= keys:
+        return Motion(fps=data["fps"], root_pos=data["root_pos"],
+                      root_quat=from_order(data["root_rot"], str(data["quat_order"])),
+                      dof_pos=data["dof_pos"], dof_names=data["dof_names"]).in_humanoid_order()
+    if {"joint_pos", "body_pos_w", "body_quat_w"} <= keys:
+        return read_beyondmimic(data, str(path))
     raise ValueError(f"{path} is neither a 'qpos' (qpos, qpos_names, fps), a 'fields' (root_pos, root_rot, "
                      f"quat_order, dof_pos, dof_names, fps) nor a 'beyondmimic' (fps, joint_pos, body_pos_w, "
                      f"body_quat_w) motion file; it has {sorted(keys)}")

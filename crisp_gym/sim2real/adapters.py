@@ -9,6 +9,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.npz import read_npz
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import (GO2_JOINTS, GO2_KD, GO2_KP, SERVO_ACTUATOR, SERVO_JOINT, ServoConfig,
                                        build_servo_pendulum, load_go2_fixed_base)
@@ -29,17 +30,22 @@ def load_servo_json(path: str | Path) -> tuple[RealLog, mujoco.MjModel]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"servo log not found: {path}")
-    data = json.loads(path.read_text())
-    missing = [k for k in _SERVO_HEADER if k not in data]
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON ({err})") from None
+    missing = [k for k in _SERVO_HEADER if k not in data] if isinstance(data, dict) else list(_SERVO_HEADER)
     if missing or "entries" not in data:
         raise ValueError(f"{path} is not a servo JSON log: missing {missing or ['entries']} "
                          f"(expected header {list(_SERVO_HEADER)} and entries[])")
     entries = data["entries"]
-    if not entries or any(k not in entries[0] for k in _SERVO_ENTRY):
-        raise ValueError(f"{path}: entries must hold {list(_SERVO_ENTRY)}")
-    col = {k: np.array([e[k] for e in entries], dtype=float) for k in _SERVO_ENTRY}
-    cfg = ServoConfig(mass=float(data["mass"]), length=float(data["length"]), kp=float(data["kp"]),
-                      vin=float(data["vin"]))
+    try:
+        col = {k: np.array([e[k] for e in entries], dtype=float) for k in _SERVO_ENTRY}
+        cfg = ServoConfig(mass=float(data["mass"]), length=float(data["length"]), kp=float(data["kp"]),
+                          vin=float(data["vin"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: the header needs numbers {list(_SERVO_HEADER)} and every entry numbers "
+                         f"{list(_SERVO_ENTRY)} ({type(err).__name__}: {err})") from None
     meta = {"format": "servo_json", "source": str(path), "kp": cfg.kp, "vin": cfg.vin,
             "trajectory": data.get("trajectory", ""), "motor": data.get("motor", "")}
     log = RealLog(time=col["timestamp"], qpos=col["position"][:, None], ctrl=col["goal_position"][:, None],
@@ -57,11 +63,11 @@ def load_go2_npz(path: str | Path, xml: str | Path | None = None, kp: float = GO
     if not path.is_file():
         raise FileNotFoundError(f"Go2 log not found: {path}")
     xml = Path(xml) if xml is not None else path.with_name("go2.xml")
-    with np.load(path) as z:
-        missing = [k for k in ("time", "dof_pos", "des_dof_pos") if k not in z]
-        if missing:
-            raise ValueError(f"{path} is not a Go2 log: missing {missing}")
-        time, q, qd = (np.asarray(z[k], dtype=float) for k in ("time", "dof_pos", "des_dof_pos"))
+    z = read_npz(path, "Go2 log")
+    missing = [k for k in ("time", "dof_pos", "des_dof_pos") if k not in z]
+    if missing:
+        raise ValueError(f"{path} is not a Go2 log: missing {missing}")
+    time, q, qd = (np.asarray(z[k], dtype=float) for k in ("time", "dof_pos", "des_dof_pos"))
     if q.shape[1:] != (12,) or qd.shape != q.shape:
         raise ValueError(f"Go2 dof_pos/des_dof_pos must be (T, 12), got {q.shape} and {qd.shape}")
     model = load_go2_fixed_base(xml, kp, kd)

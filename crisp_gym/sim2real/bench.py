@@ -28,6 +28,7 @@ import numpy as np
 from scipy.signal import lfilter
 from tqdm import tqdm
 
+from crisp_gym.atomic import write_text
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.fit import Combo, gap_rms, residuals
@@ -71,6 +72,9 @@ class BenchConfig:
     p_outside: float = 0.12
     go2_xml: Path = GO2_XML
     families: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        fx.check_families(self.families)
 
 
 @dataclass(frozen=True)
@@ -328,9 +332,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path) -> dict:
         with open(out / "results.jsonl", "a" if i else "w") as f:
             f.write(json.dumps(row) + "\n")
     summary = summarize(rows)
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=1))
-    tmp.replace(out / "summary.json")
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
     return summary
 
 

@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Annotated
 
 import mujoco
-import numpy as np
 import tyro
 
+from crisp_gym.file_errors import reading
+from crisp_gym.npz import read_npz
 from crisp_gym.sim2real.adapters import load_go2_npz, load_servo_json
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.log import RealLog, load_log
@@ -60,10 +61,14 @@ def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjMod
     """A log and its model, whatever its format."""
     if not path.is_file():
         raise FileNotFoundError(f"log not found: {path}")
+    with reading(path, "real log"):
+        return _load_log(path, model_path)
+
+
+def _load_log(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjModel]:
     if path.suffix == ".json":
         return load_servo_json(path)
-    with np.load(path) as z:
-        keys = set(z.files)
+    keys = set(read_npz(path, "real log (npz or servo JSON)"))
     if {"dof_pos", "des_dof_pos"} <= keys:
         return load_go2_npz(path, model_path if model_path and model_path.suffix == ".xml" else None)
     if model_path is None:
@@ -87,7 +92,8 @@ def run_diagnose(args: Diagnose) -> int:
 
 
 def run_bench(args: Bench) -> int:
-    from crisp_gym.sim2real.bench import BenchConfig, run_bench as bench
+    from crisp_gym.sim2real.bench import BenchConfig
+    from crisp_gym.sim2real.bench import run_bench as bench
 
     summary = bench(BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale, models=args.models,
                                 families=args.families), args.out)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from tqdm import tqdm
 
-from crisp_gym.sim2real.effects import Effect, library
+from crisp_gym.sim2real.effects import Effect, check_families, library
 from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
 from crisp_gym.sim2real.gap import where
 from crisp_gym.sim2real.log import RealLog
@@ -67,6 +67,9 @@ class DiagnoseConfig:
     bootstrap: int = 6
     floor_draws: int = 5
     show_progress: bool = True
+
+    def __post_init__(self) -> None:
+        check_families(self.families)
 
 
 @dataclass

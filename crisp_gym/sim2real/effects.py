@@ -706,6 +706,13 @@ EFFECT_TYPES: tuple[type[Effect], ...] = (
 FAMILIES: tuple[str, ...] = tuple(dict.fromkeys(t.family for t in EFFECT_TYPES))
 
 
+def check_families(families: tuple[str, ...]) -> None:
+    """ValueError naming every entry of ``families`` that is no family of :data:`FAMILIES`."""
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown:
+        raise ValueError(f"unknown effect families {unknown}; the library's are {', '.join(FAMILIES)}")
+
+
 def library(tr: Trajectory, focus: str | None = None, families: tuple[str, ...] | None = None) -> list[Effect]:
     """Candidate effects for a log: each effect shared by all joints; for joint effects
     on a multi-joint log, also one confined to ``focus`` (the joint with the largest gap)

@@ -18,6 +18,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.atomic import atomic_path
+from crisp_gym.npz import read_npz
+
 FORMAT_VERSION = 1
 _SCALAR_JOINTS = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 
@@ -126,27 +129,27 @@ def save_log(log: RealLog, path: str | Path) -> Path:
         arrays["qvel"] = log.qvel
     if log.ctrl_enabled is not None:
         arrays["ctrl_enabled"] = log.ctrl_enabled
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
     return path
 
 
 def load_log(path: str | Path) -> RealLog:
     """Read a log npz written by :func:`save_log` or by the user's own recorder."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"log file not found: {path}")
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in ("time", "qpos", "ctrl", "joint_names", "actuator_names") if k not in z]
-        if missing:
-            raise ValueError(f"{path} is not a real-log npz: missing {missing} "
-                             "(expected time, qpos, ctrl, joint_names, actuator_names, optional qvel)")
-        meta = json.loads(str(z["meta"])) if "meta" in z else {}
-        return RealLog(time=z["time"], qpos=z["qpos"], ctrl=z["ctrl"], joint_names=tuple(z["joint_names"]),
-                       actuator_names=tuple(z["actuator_names"]), qvel=z["qvel"] if "qvel" in z else None,
-                       ctrl_enabled=z["ctrl_enabled"] if "ctrl_enabled" in z else None,
-                       meta={**meta, "source": str(path)})
+    z = read_npz(path, "real-log npz")
+    missing = [k for k in ("time", "qpos", "ctrl", "joint_names", "actuator_names") if k not in z]
+    if missing:
+        raise ValueError(f"{path} is not a real-log npz: missing {missing} "
+                         "(expected time, qpos, ctrl, joint_names, actuator_names, optional qvel)")
+    meta = json.loads(str(z["meta"])) if "meta" in z else {}
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: meta must be a JSON object, got {type(meta).__name__}")
+    names = {k: tuple(str(n) for n in np.atleast_1d(z[k])) for k in ("joint_names", "actuator_names")}
+    return RealLog(time=z["time"], qpos=z["qpos"], ctrl=z["ctrl"], joint_names=names["joint_names"],
+                   actuator_names=names["actuator_names"], qvel=z["qvel"] if "qvel" in z else None,
+                   ctrl_enabled=z["ctrl_enabled"] if "ctrl_enabled" in z else None,
+                   meta={**meta, "source": str(path)})
 
 
 def validate_against_model(log: RealLog, model: mujoco.MjModel) -> None:

@@ -7,11 +7,11 @@ so an interrupted run never leaves a half-written report.
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from crisp_gym.atomic import atomic_directory
 
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
@@ -24,21 +24,10 @@ def to_json(result: dict) -> dict:
 def write_report(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
     """Write ``report.json``, ``report.md`` and PNG plots into ``out_dir``."""
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_directory(out_dir, overwrite=True) as tmp:
         (tmp / "report.json").write_text(json.dumps(to_json(result), indent=1, default=_jsonable))
         figures = _plots(result, tmp) if plots and "_replay" in result else []
         (tmp / "report.md").write_text(_markdown(result, figures))
-        if out_dir.exists():
-            for f in tmp.iterdir():
-                f.replace(out_dir / f.name)
-            tmp.rmdir()
-        else:
-            tmp.rename(out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
 
 
