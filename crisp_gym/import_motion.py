@@ -12,6 +12,8 @@ AMASS               ``.npz`` with ``poses`` (T,72/156/165) and ``trans``; frame 
 SMPL parameters     ``.npz`` with ``global_orient``, ``body_pose``, ``transl`` (GVHMR and others)
 PHC / SMPLSim       ``.npz`` with ``pose_aa`` (T,24,3) and ``trans`` (our ``smpl`` export)
 BeyondMimic/mjlab   ``.npz`` with ``joint_pos``, ``body_pos_w``, ``body_quat_w``, ``fps``
+ProtoMotions        ``.motion`` (torch-saved ``dof_pos``, ``rigid_body_pos``/``_rot``, ``fps``; read
+                    without running code, see :mod:`crisp_gym.protomotions`)
 ``fields``/``qpos``  ``.npz`` of ``crisp export --format npz``
 ``motion.npz``      ``.npz`` with ``root_pos``, ``root_quat``, ``dof_pos`` (a clip's own motion)
 CSV                 ``.csv`` of ``crisp export --format csv``
@@ -44,7 +46,7 @@ from crisp_gym.npz import read_npz
 from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip, user_clips_dir
 from crisp_gym.scene import floor_box
 
-MOTION_SUFFIXES = (".bvh", ".npz", ".csv")
+MOTION_SUFFIXES = (".bvh", ".npz", ".csv", ".motion")
 """File types a folder import picks up."""
 
 Grounding = Literal["stance", "constant"]
@@ -131,6 +133,11 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
         from crisp_gym.export.motion_formats import read_motion_csv
 
         return read_motion_csv(path), "CSV", None, None
+    if suffix == ".motion":
+        from crisp_gym.protomotions import read_protomotions
+
+        motion = read_protomotions(path)
+        return (motion if grounding is None else level_feet(motion, model, grounding)), "ProtoMotions", None, None
     if suffix != ".npz":
         raise ValueError(f"{path}: unsupported motion file type {suffix!r} (expected {', '.join(MOTION_SUFFIXES)})")
     keys = _npz_keys(path)

@@ -35,10 +35,12 @@ from crisp_gym.sim2real.models import SERVO_ACTUATOR, SERVO_JOINT, build_servo_p
 from reconstruct.io import read_frames
 from tests.conftest import sway_motion
 from tests.test_bvh import BVH_TO_OURS, CMU_UNIT, cgspeed_joints, pose_rotations, write_bvh
+from tests.test_import_motion import _protomotions_file
 from tests.test_recon_io import _npz_arrays, _write_tum
 from train.ppo import load_policy
 
 MAX_BYTES = 2 * 1024**3
+MODEL = build_humanoid()
 EXTREME_NUMBERS = ["nan", "inf", "-inf", "1e308", "-1e308", "1e-308", "0", "-0", "-1", "1e6", "99999999999999999999",
                    "", "x", "1e", "--1", "0x10"]
 EXTREME_VALUES = [np.nan, np.inf, -np.inf, 1e308, -1e308, 0.0, -1.0, 1e6, 1e-300]
@@ -174,6 +176,7 @@ def seeds(tmp_path_factory) -> dict[str, Path]:
     files["servo"].write_text(json.dumps({"mass": 0.49, "length": 0.1, "kp": 400, "vin": 7.4, "motor": "xl330",
                                           "trajectory": "sin", "dt": 0.005, "entries": entries}, indent=0))
     files["policy"] = Path(__file__).resolve().parents[1] / "assets" / "policies" / "bundled" / "policy.pt"
+    files["protomotions"] = _protomotions_file(root / "walk.motion", motion, MODEL)
     return files
 
 
@@ -183,7 +186,6 @@ def _write(path: Path, data: bytes | str) -> Path:
     return path
 
 
-MODEL = build_humanoid()
 MOTION_FILES = ["motion", "amass", "smpl", "beyondmimic"]
 
 
@@ -247,15 +249,18 @@ def test_damaged_folders(seeds, tmp_path, kind, loader, examples):
     check()
 
 
+@pytest.mark.parametrize("kind", ["policy", "protomotions"])
 @pytest.mark.parametrize("examples", [pytest.param(25, id="25"), pytest.param(250, id="250", marks=pytest.mark.slow)])
-def test_damaged_policy_files(seeds, tmp_path, examples):
-    seed = seeds["policy"].read_bytes()
+def test_damaged_torch_files(seeds, tmp_path, kind, examples):
+    """Policies and ProtoMotions motions: torch zip archives read with ``weights_only``."""
+    seed = seeds[kind]
+    load = load_policy if kind == "policy" else (lambda p: read_motion(p, model=MODEL))
 
     @_examples(examples)
-    @given(data=damaged_bytes(seed))
+    @given(data=damaged_bytes(seed.read_bytes()))
     def check(data):
-        path = _write(tmp_path / "policy.pt", data)
-        _loads_or_explains(lambda: load_policy(path))
+        path = _write(tmp_path / seed.name, data)
+        _loads_or_explains(lambda: load(path))
 
     check()
 

@@ -267,3 +267,49 @@ def test_a_clip_no_body_can_do_is_refused_by_every_command_that_loads_it(walk, t
     assert cli.main(["export", str(clip), "-o", str(tmp_path / "out")]) == 2
     assert "frame 40: the root is 5.6e+298 m" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def _protomotions_file(path: Path, motion: Motion, model, **changes) -> Path:
+    """A ProtoMotions ``.motion`` as its tools save one: a torch dict, world body states with
+    x y z w quaternions (made here from MuJoCo's forward kinematics, not by the reader's module)."""
+    import torch
+
+    kin = compute_kinematics(motion, model)
+    content = {"dof_pos": torch.tensor(motion.in_humanoid_order().dof_pos, dtype=torch.float32),
+               "rigid_body_pos": torch.tensor(kin.body_pos, dtype=torch.float32),
+               "rigid_body_rot": torch.tensor(np.roll(kin.body_quat, -1, axis=-1), dtype=torch.float32),
+               "dof_vel": torch.zeros(motion.num_frames, len(DOF_NAMES)), "fps": motion.fps} | changes
+    torch.save(content, path)
+    return path
+
+
+@pytest.mark.parametrize("clip", ["flat_walk", "chair_sit"])
+def test_protomotions_files_import_with_every_joint_in_place(clip, model, tmp_path):
+    motion = load_clip(clip).motion
+    path = _protomotions_file(tmp_path / f"{clip}.motion", motion, model)
+    read = read_motion(path, grounding="constant", model=model)
+    assert read.source_format == "ProtoMotions" and read.source_fps == motion.fps
+    assert _joint_error(read.motion, motion, model) < 1e-4  # float32 storage
+    assert _joint_error(read_motion(path, model=model).motion, motion, model) < 2e-3  # feet laid flat
+
+
+def test_protomotions_files_are_read_without_running_code(walk, model, tmp_path):
+    import torch
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (tmp_path / "ran",))
+
+    torch.save({"dof_pos": Payload(), "fps": 30.0}, tmp_path / "evil.motion")
+    with pytest.raises(ValueError, match="not a torch file of tensors and plain values"):
+        read_motion(tmp_path / "evil.motion", model=model)
+    assert not (tmp_path / "ran").exists()
+    bad = _protomotions_file(tmp_path / "bad.motion", walk, model, rigid_body_rot=torch.zeros(3, 24, 4))
+    with pytest.raises(ValueError, match=r"rigid_body_rot must have shape \(T, 24, 4\)"):
+        read_motion(bad, model=model)
+    swapped = _protomotions_file(tmp_path / "wxyz.motion", walk, model)  # quaternions in the other order
+    content = torch.load(swapped, weights_only=True)
+    content["rigid_body_rot"] = content["rigid_body_rot"].roll(1, dims=-1)
+    torch.save(content, swapped)
+    with pytest.raises(ValueError, match=r"conventions \(hinge order, quaternion order x y z w"):
+        read_motion(swapped, model=model)
