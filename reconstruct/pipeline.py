@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import tyro
 
 from crisp_gym.atomic import atomic_directory
@@ -35,7 +36,7 @@ from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
 from crisp_gym.scene import Box, save_primitives, write_scene_xml
-from reconstruct.align import AlignConfig, Alignment, align
+from reconstruct.align import AlignConfig, Alignment, align, transform_motion
 from reconstruct.contact import (
     CompletionResult,
     ContactConfig,
@@ -80,6 +81,8 @@ class Reconstruction:
         timings: seconds per stage.
         frames: the aligned input (metric, in the scene's frame, person removed), e.g. for a
             baseline fused from the same depth.
+        frame: ``"world"`` (gravity-aligned, floor at z = 0, origin and yaw the pipeline's) or
+            ``"input"`` (the input's own frame, scaled to metres: see :func:`in_input_frame`).
     """
 
     boxes: list[Box]
@@ -89,6 +92,7 @@ class Reconstruction:
     completion: CompletionResult | None
     timings: dict[str, float]
     frames: Frames
+    frame: Literal["world", "input"] = "world"
 
     def meta(self) -> dict:
         """The JSON-ready provenance for ``meta.json``."""
@@ -96,6 +100,7 @@ class Reconstruction:
                   "contact": sum(b.source == "contact" for b in self.boxes)}
         meta = {
             "source": "reconstruct",
+            "frame": self.frame,
             "scale": self.alignment.scale,
             "alignment": self.alignment.to_json(),
             "timings": {k: round(v, 3) for k, v in self.timings.items()},
@@ -110,6 +115,26 @@ class Reconstruction:
 
 
 ContactSource = Literal["kinematic", "none"] | Path
+
+INPUT_FRAME_MAX_TILT_DEG = 5.0
+"""``--keep-input-frame`` needs an input whose +z is up within this angle (simulation pulls along −z)."""
+
+
+def in_input_frame(result: Reconstruction) -> Reconstruction:
+    """``result`` expressed in the input's own frame (scaled to metres) instead of the world the
+    pipeline builds, whose origin and yaw it chooses: for clips that must match a map the input's
+    poses are in (a robot's, a SLAM system's). The input must already be gravity-aligned: z up."""
+    input_from_world = np.linalg.inv(result.alignment.world_from_input)
+    up = input_from_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    tilt = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+    if tilt > INPUT_FRAME_MAX_TILT_DEG:
+        raise ValueError(f"--keep-input-frame needs an input whose z axis points up; in this input the floor's normal "
+                         f"is {tilt:.1f}° from +z (at most {INPUT_FRAME_MAX_TILT_DEG:g}°): leave the option out to "
+                         f"get the gravity-aligned world, or give poses in a z-up frame")
+    motion = None if result.motion is None else transform_motion(result.motion, input_from_world)
+    return replace(result, boxes=[b.transformed(input_from_world) for b in result.boxes], motion=motion,
+                   frames=result.frames.transformed(input_from_world), frame="input")
+
 
 
 def contact_completion(motion: Motion, boxes: list[Box], source: ContactSource, cfg: ContactConfig,
@@ -164,9 +189,10 @@ def no_box_reason(result: Reconstruction, frames: Frames) -> str:
         return (f"no box survived: no frame had a planar segment ({frames.num_frames} frames, {100 * valid:.0f} % "
                 f"valid depth pixels); is the depth a depth map, in metres (or rescaled by the motion)?")
     return (f"no box survived: {planes.segments} planar segments formed {planes.groups} planar groups, none "
-            f"seen in at least {cfg.min_group_frames} of the {frames.num_frames} frames with "
-            f"{cfg.min_group_points} inlier points and a box's size (filtered before fitting: {planes.dropped}); "
-            f"a short or nearly still video sees each surface in few frames")
+            f"seen in at least {cfg.min_group_frames} of the {frames.num_frames} frames (or covering "
+            f"{100 * cfg.single_view_share:.0f} % of one) with {cfg.min_group_points} inlier points and a box's size "
+            f"(filtered before fitting: {planes.dropped}); a short or nearly still video sees each surface in few "
+            f"frames")
 
 
 def write_scene_dir(directory: Path, boxes: list[Box], meta: dict, overwrite: bool = False) -> Path:
@@ -198,6 +224,9 @@ class ReconstructArgs:
     """For per-vertex contact files: an npz with ``vertex_body`` (6890,) mapping SMPL vertices to bodies."""
     metric: bool = False
     """Trust the depth as metres (required without --motion)."""
+    keep_input_frame: bool = False
+    """Write the clip in the input's own frame (which must be z up), not a world whose origin and yaw the
+    pipeline picks: for clips that must line up with the map the poses came from."""
     intrinsics: tuple[float, float, float, float] | None = None
     """RGB-D folders: FX FY CX CY of the depth images in pixels (default: the folder's camera file or layout)."""
     depth_scale: float | None = None
@@ -242,6 +271,9 @@ def run(args: ReconstructArgs) -> Path:
     if args.fps is not None:
         check_video_fps(args.fps, "--fps")
     if args.motion is None and is_plain_video(args.input):
+        if args.keep_input_frame:
+            raise ValueError("--keep-input-frame applies to depth inputs with poses; a plain video has no frame "
+                             "of its own")
         return run_video(args, name, out)
     start = time.perf_counter()
     frames = read_frames(args.input, rgbd=RgbdFolderConfig(intrinsics=args.intrinsics, depth_scale=args.depth_scale))
@@ -250,6 +282,8 @@ def run(args: ReconstructArgs) -> Path:
     result = reconstruct(frames, motion, contacts=contacts, metric=args.metric, vertex_map=args.vertex_map)
     if not result.boxes:
         raise ValueError(no_box_reason(result, frames))
+    if args.keep_input_frame:
+        result = in_input_frame(result)
     meta = result.meta() | {"name": name, "input": str(args.input.resolve()),
                             "motion_input": None if args.motion is None else str(args.motion.resolve()),
                             "contact_source": str(args.contacts), "fps": frames.fps,

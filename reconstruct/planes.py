@@ -93,7 +93,10 @@ class PlaneFitConfig:
         association_plane_distance: ...and each one's centroid is within this distance of the
             other's plane (frames a moment apart agree on where a surface is; a tread and the next
             one up overlap along their shared edge but are a riser apart).
-        min_group_frames: planar groups (and surfaces) seen in fewer frames are dropped.
+        min_group_frames: planar groups (and surfaces) seen in fewer frames are dropped...
+        single_view_share: ...unless their inliers cover at least this share of one frame's grid
+            (a surface seen well once is still a surface: sparse keyframes, or a table top one
+            view saw; what a video sees in a frame or two without linking it is small).
         min_group_points: planar groups (and surfaces) with fewer inlier points are dropped.
         ransac_distance: RANSAC inlier distance to the plane; also the distance within which a
             cell is an inlier of its frame's segment plane.
@@ -126,6 +129,8 @@ class PlaneFitConfig:
             rectangle...
         min_split_notch: ...by cutting off a notch at least this deep (m): a missing corner the
             size of a step is split off, the ragged or tapered edges of a noisy footprint are not.
+            Of a split footprint, parts narrower than this are dropped (strips along an edge where
+            views disagree by a few centimetres, not surfaces).
         max_boxes_per_plane: at most this many boxes per plane (splitting stops there).
         thickness: box thickness behind the surface (the paper's 0.05 m).
         seed: seeds K-means and RANSAC, so runs are reproducible.
@@ -153,6 +158,7 @@ class PlaneFitConfig:
     min_normal_cosine: float = 0.95
     association_plane_distance: float = 0.05
     min_group_frames: int = 3
+    single_view_share: float = 0.03
     min_group_points: int = 150
     ransac_distance: float = 0.03
     ransac_iterations: int = 200
@@ -190,7 +196,8 @@ class PlaneFitConfig:
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"PlaneFitConfig.{name} must be positive and finite, got {value!r}")
-        fractions = ("min_block_fill", "min_overlap", "min_normal_cosine", "merge_normal_cosine", "min_fill_ratio")
+        fractions = ("min_block_fill", "min_overlap", "min_normal_cosine", "merge_normal_cosine", "min_fill_ratio",
+                     "single_view_share")
         for name in fractions:
             value = getattr(self, name)
             if not 0.0 < value <= 1.0:
@@ -689,7 +696,10 @@ def _guillotine(occ: np.ndarray, cfg: PlaneFitConfig) -> list[tuple[slice, slice
             if child is not None and occ[child].sum() >= min_cells:
                 order += 1
                 heapq.heappush(heap, (-(occ[child].size - occ[child].sum()), order, child))
-    return [leaf for leaf in leaves if occ[leaf].sum() >= min_cells]
+    kept = [leaf for leaf in leaves if occ[leaf].sum() >= min_cells]
+    if len(kept) > 1:
+        kept = [leaf for leaf in kept if min(occ[leaf].shape) >= min_notch]
+    return kept
 
 
 def _plane_boxes(plane: _Plane, yaw: float | None, cfg: PlaneFitConfig) -> tuple[list[Box], float]:
@@ -768,6 +778,7 @@ class _Segmented:
     points: np.ndarray
     ids: np.ndarray
     links: np.ndarray
+    cells_per_frame: int
 
 
 def _segment_video(frames: Frames, tree: cKDTree | None, cfg: PlaneFitConfig, rng: np.random.Generator,
@@ -815,7 +826,8 @@ def _segment_video(frames: Frames, tree: cKDTree | None, cfg: PlaneFitConfig, rn
     return _Segmented(frame=np.concatenate(seg_frame), size=np.concatenate(seg_size),
                       normal=np.concatenate(seg_normal), centroid=np.concatenate(seg_centroid), points=np.concatenate(cell_points).astype(np.float64),
                       ids=np.concatenate(cell_ids),
-                      links=np.concatenate(links) if links else np.zeros((0, 2), dtype=np.int64))
+                      links=np.concatenate(links) if links else np.zeros((0, 2), dtype=np.int64),
+                      cells_per_frame=int(grid.depth.size))
 
 
 def _frame_scales(seg: _Segmented, group_of: np.ndarray, normal: np.ndarray, fitted: np.ndarray,
@@ -841,6 +853,15 @@ def _frame_scales(seg: _Segmented, group_of: np.ndarray, normal: np.ndarray, fit
             mine = steady & (frame == t)
             scales[t] = _weighted_median(wanted[mine], weight[mine])
     return np.clip(scales, 1 - cfg.frame_scale_correction, 1 + cfg.frame_scale_correction)
+
+
+def _seen_enough(cell_frames: np.ndarray, cells_per_frame: int, cfg: PlaneFitConfig) -> bool:
+    """A group or surface whose inlier cells were seen in frames ``cell_frames`` is kept: enough
+    cells, and seen in enough frames or well in one."""
+    if len(cell_frames) < cfg.min_group_points:
+        return False
+    per_frame = np.unique(cell_frames, return_counts=True)[1]
+    return len(per_frame) >= cfg.min_group_frames or per_frame.max() >= cfg.single_view_share * cells_per_frame
 
 
 def _group_planes(seg: _Segmented, cameras: np.ndarray, cfg: PlaneFitConfig,
@@ -872,7 +893,7 @@ def _group_planes(seg: _Segmented, cameras: np.ndarray, cfg: PlaneFitConfig,
     fitted = np.zeros(num_groups, dtype=bool)
     for g in range(num_groups):
         cells = order[bounds[g]:bounds[g + 1]]
-        if len(cells) < cfg.min_group_points or len(np.unique(seg.frame[seg.ids[cells]])) < cfg.min_group_frames:
+        if not _seen_enough(seg.frame[seg.ids[cells]], seg.cells_per_frame, cfg):
             continue
         prior = group_normal[g] / max(np.linalg.norm(group_normal[g]), 1e-12)
         normal[g] = _ransac_normal(seg.points[cells], prior, cfg, rng)
@@ -900,7 +921,7 @@ def _group_planes(seg: _Segmented, cameras: np.ndarray, cfg: PlaneFitConfig,
         for k in range(surface.max() + 1):
             chosen = inlier & (surface[local] == k)
             frames_seen = len(np.unique(seg.frame[segments[surface == k]]))
-            if chosen.sum() < cfg.min_group_points or frames_seen < cfg.min_group_frames:
+            if not _seen_enough(seg.frame[seg.ids[cells[chosen]]], seg.cells_per_frame, cfg):
                 continue
             planes.append(_Plane(normal=normal[g], offset=_weighted_median(offset, weight * (surface == k)),
                                  points=members[chosen], frames=frames_seen, groups=[int(g)]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -12,9 +13,12 @@ import pytest
 import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
 from crisp_gym import cli
 from crisp_gym.clip import load_clip_dir
-from crisp_gym.metrics import support_tops
+from crisp_gym.humanoid import build_humanoid
+from crisp_gym.metrics import box_signed_distance, support_tops
+from crisp_gym.motion import compute_kinematics
 from reconstruct import pipeline
 from reconstruct.metrics import heading_alignment
+from reconstruct.planes import PlaneFitConfig
 from reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
 
 
@@ -132,10 +136,12 @@ def test_bad_names_and_outputs_fail_before_any_work(argv, message, tmp_path, mon
     assert not (tmp_path / "clips").exists() and not (tmp_path.parent / "escape").exists()
 
 
-def test_no_box_is_an_error_that_says_why(stairs_input, tmp_path):
-    """Two frames of the stairs video: the floor aligns, but a planar group must be seen in three
-    frames, so nothing survives; the run stops with the planar fit's counts instead of writing
-    an empty scene."""
+def test_no_box_is_an_error_that_says_why(stairs_input, tmp_path, monkeypatch):
+    """Two frames of the stairs video, with the single-view rule off: the floor aligns, but a
+    planar group must be seen in three frames, so nothing survives; the run stops with the planar
+    fit's counts instead of writing an empty scene."""
+    no_single_view = pipeline.ReconstructConfig(planes=PlaneFitConfig(single_view_share=1.0))
+    monkeypatch.setattr(pipeline, "ReconstructConfig", lambda: no_single_view)
     with np.load(stairs_input / "input.npz") as data:
         arrays = {k: data[k][:2] if k in ("depths", "cam_c2w", "images", "masks") else data[k] for k in data.files}
     scale = load_ground_truth(stairs_input).scale
@@ -146,3 +152,38 @@ def test_no_box_is_an_error_that_says_why(stairs_input, tmp_path):
     with pytest.raises(ValueError, match="no box survived: .* none seen in at least 3 of the 2 frames"):
         pipeline.run(pipeline.ReconstructArgs(input=tmp_path / "input.npz", output=tmp_path / "scene", metric=True))
     assert not (tmp_path / "scene").exists()
+
+
+def test_keep_input_frame_writes_the_clip_in_the_inputs_own_map_frame(stairs_input, tmp_path):
+    """Metric poses in a z-up map frame (the true world turned 30° and moved, its floor 0.3 m up):
+    with --keep-input-frame the treads come out where the map has them, not in a world the
+    pipeline re-framed; a tilted input frame is refused."""
+    truth = load_ground_truth(stairs_input)
+    yaw = np.radians(30.0)
+    map_from_world = np.eye(4)
+    map_from_world[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]]
+    map_from_world[:3, 3] = [5.0, -2.0, 0.3]
+    with np.load(stairs_input / "input.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["depths"] = arrays["depths"].astype(np.float32) * truth.scale
+    metric_poses = arrays["cam_c2w"].copy()
+    metric_poses[:, :3, 3] *= truth.scale
+    arrays["cam_c2w"] = map_from_world @ truth.world_from_input @ metric_poses
+    np.savez(tmp_path / "input.npz", **arrays)
+    args = pipeline.ReconstructArgs(input=tmp_path / "input.npz", motion=stairs_input / "motion_camera.npz",
+                                    output=tmp_path / "clip", metric=True, keep_input_frame=True)
+    clip = load_clip_dir(pipeline.run(args))
+    assert json.loads((tmp_path / "clip" / "meta.json").read_text())["frame"] == "input"
+    treads = [b.transformed(map_from_world) for b in truth.boxes if b.name != "floor" and b.top_height() > 0.05]
+    tops = np.array([b.center + b.half_size[2] * b.rotation[:, 2] for b in treads])  # centres of the true tops
+    assert np.abs(box_signed_distance(tops, clip.boxes)).max() < 0.04
+    pelvis = compute_kinematics(truth.motion, build_humanoid()).body_pos[:, 0] @ map_from_world[:3, :3].T \
+        + map_from_world[:3, 3]
+    assert np.median(np.linalg.norm(clip.motion.root_pos - pelvis, axis=1)) < 0.05
+
+    tilted = np.eye(4)
+    tilted[:3, :3] = [[1.0, 0.0, 0.0], [0.0, np.cos(0.3), -np.sin(0.3)], [0.0, np.sin(0.3), np.cos(0.3)]]
+    arrays["cam_c2w"] = tilted @ arrays["cam_c2w"]
+    np.savez(tmp_path / "tilted.npz", **arrays)
+    with pytest.raises(ValueError, match=r"the floor's normal is 17.\d° from \+z"):
+        pipeline.run(replace(args, input=tmp_path / "tilted.npz", output=tmp_path / "tilted"))

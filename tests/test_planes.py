@@ -213,3 +213,17 @@ def test_bad_input_is_rejected():
         fit_planes(frames, pelvis_path=np.full((2, 3), np.nan), progress=False)
     with pytest.raises(ValueError, match="PlaneFitConfig"):
         fit_planes(frames, cfg={"thickness": 0.05}, progress=False)
+
+
+@pytest.mark.parametrize("frames, noise", [(1, 0.002), (3, 0.005)])
+def test_sparse_keyframes_keep_surfaces_seen_well_once_and_nothing_else(frames, noise):
+    """A platform seen from one view, or from three 40° apart (keyframes, as an RGB-D SLAM system
+    keeps them), with relative depth noise: with the three-frame rule alone nothing survived the
+    single view. Its top is found, and every box lies on a true surface (no spurious box)."""
+    boxes = [floor_box(), *platform_boxes(PlatformParams(height=0.2, length=1.0, width=1.2, start=1.5))[1:]]
+    fit = fit_planes(render(boxes, 180.0, frames=frames, noise=noise, seed=frames), progress=False)
+    overlap, dz = best_top(fit.boxes, boxes[1])
+    assert abs(dz) < 0.02 and overlap > 0.6, (overlap, dz)
+    for box in fit.boxes:  # the visible face's centre lies on a true surface
+        face = box.center + box.half_size[2] * box.rotation[:, 2]
+        assert abs(box_signed_distance(face[None], boxes)[0]) < 0.03, (box.center, box.half_size)

@@ -17,8 +17,9 @@ from reconstruct.frames import Frames
 from reconstruct.io import (
     PRIMESENSE_INTRINSIC,
     SMPL_PELVIS_OFFSET,
-    RgbdFolderConfig,
     TUM_FR1_INTRINSIC,
+    RgbdFolderConfig,
+    depth_agreement,
     read_frames,
     read_megasam_npz,
     read_motion,
@@ -207,6 +208,18 @@ def test_tum_folder_without_poses_is_tracked_by_odometry(tmp_path, tum_scene):
     np.testing.assert_allclose(frames.cam_c2w[0], np.eye(4))
     trans, rot = _pose_errors(frames.cam_c2w, poses)
     assert trans < 0.03 and rot < 1.0, (trans, rot)
+
+
+def test_depth_agreement_tells_right_poses_from_lost_odometry(tum_scene):
+    """Frame-to-frame odometry can converge to a wrong motion (on a real five-frame room folder:
+    24-120° off); the depth the two frames share says so: with the true poses nearly every
+    overlapping pixel agrees, with a pose 10° or 20 cm off few do."""
+    poses, k, depth, _ = tum_scene
+    assert depth_agreement(depth, k, poses, 5, 4) > 0.9
+    turned, moved = poses.copy(), poses.copy()
+    turned[5, :3, :3] = turned[5, :3, :3] @ Rotation.from_euler("y", 10, degrees=True).as_matrix()
+    moved[5, :3, 3] += [0.2, 0.0, 0.0]
+    assert depth_agreement(depth, k, turned, 5, 4) < 0.5 and depth_agreement(depth, k, moved, 5, 4) < 0.5
 
 
 def test_redwood_folder_with_intrinsic_json_and_log(tmp_path, tum_scene):
