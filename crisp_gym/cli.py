@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),
     "train": ("train.ppo", "train a tracking policy with PPO"),
     "eval": ("train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),
+    "ship": ("train.ship", "package a run for shipping: policy file, evaluation, learning curves"),
     "gap": ("crisp_gym.sim2real.cli", "sim-to-real gap: `crisp gap diagnose` / `crisp gap bench`"),
 }
 

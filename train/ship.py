@@ -1,6 +1,6 @@
 """Package a trained run for shipping: the small policy file, its evaluation and its learning curve.
 
-    python -m train.ship RUN -o assets/policies/NAME [--clip NAME ...]
+    crisp ship RUN -o assets/policies/NAME [--clip NAME ...]
 
 writes into ``-o``:
 
@@ -139,8 +139,8 @@ def ship(args: ShipArgs) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m train.ship``: see :class:`ShipArgs`."""
-    args = tyro.cli(ShipArgs, args=argv, prog="python -m train.ship")
+    """``crisp ship``: see :class:`ShipArgs`."""
+    args = tyro.cli(ShipArgs, args=argv, prog="crisp ship")
     report = ship(args)
     print(f"wrote {args.output}/policy.pt, progress.csv, learning_curve.png, eval.json")
     for clip, row in report["clips"].items():
