@@ -5,6 +5,12 @@ Measured in one run on the same model:
 * raw physics: ``Batch.step(nstep=substeps)`` with constant controls, in env-steps/s
   (one env-step = ``substeps`` physics steps), the ceiling the env can approach;
 * the batched env (observation, reward, resets included), and its ratio to the above;
+* the same ratio on the env's own states: the time the env spends in MuJoCo's batch calls
+  (step, forward, reset) against its whole step time. The raw batch above holds constant
+  controls from start states and is reset every 20 steps; the env's humanoids (zero residual
+  actions: the PD reference) fall within about a second and make more contacts, so each of its
+  physics steps costs more (about 15 % on ``flat_walk``) and the first ratio counts that as env
+  overhead. The second counts only what the env adds to its own physics;
 * a single env, and gymnasium's ``SyncVectorEnv`` over single envs, for comparison.
 
     python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip flat_walk
@@ -48,6 +54,26 @@ def _rate(step, seconds: float) -> float:
     return count / (time.perf_counter() - start)
 
 
+def _time_batch_calls(batch: mujoco.batch.Batch) -> dict:
+    """Accumulate the seconds ``batch``'s step, forward and reset calls take from now on;
+    ``["wall"]()`` is the time since."""
+    timer = {"seconds": 0.0}
+    start = time.perf_counter()
+    for name in ("step", "forward", "reset"):
+        call = getattr(batch, name)
+
+        def timed(*args, _call=call, **kwargs):
+            tic = time.perf_counter()
+            try:
+                return _call(*args, **kwargs)
+            finally:
+                timer["seconds"] += time.perf_counter() - tic
+
+        setattr(batch, name, timed)
+    timer["wall"] = lambda: time.perf_counter() - start
+    return timer
+
+
 def main(args: Args) -> dict[str, float]:
     rng = np.random.default_rng(args.seed)
     venv = CrispTrackVectorEnv(args.num_envs, clip=list(args.clip), scene_aware=args.scene_aware, num_threads=args.threads)
@@ -78,8 +104,10 @@ def main(args: Args) -> dict[str, float]:
         raw_calls += 20
     raw_rate = raw_calls * args.num_envs / (time.perf_counter() - t0)
     results["raw_physics_env_steps_per_s"] = raw_rate
+    physics = _time_batch_calls(venv.batch)
     results["batched_env_steps_per_s"] = _rate(lambda: venv.step(zero), args.seconds) * args.num_envs
     results["ratio_batched_to_raw"] = results["batched_env_steps_per_s"] / raw_rate
+    results["ratio_env_physics_to_env"] = physics["seconds"] / physics["wall"]()
 
     single = gym.make("CrispTrack-v0", clip=list(args.clip), scene_aware=args.scene_aware)
     single.reset(seed=args.seed)
@@ -107,6 +135,8 @@ def main(args: Args) -> dict[str, float]:
                 "sync_vector_env_steps_per_s"):
         print(f"| {key} | {results[key]:,.0f} |")
     print(f"| ratio batched / raw | {results['ratio_batched_to_raw']:.3f} |")
+    print(f"| ratio on the env's own states: physics time / env step time | "
+          f"{results['ratio_env_physics_to_env']:.3f} |")
     return results
 
 
