@@ -521,3 +521,21 @@ def test_onnx_export_without_its_extra_names_it(tmp_path: Path, monkeypatch) -> 
     with pytest.raises(ModuleNotFoundError, match=r"onnxscript: pip install 'crisp-gym\[export\]'"):
         policy_export.export_policy(_tiny_actor("mlp", False), tmp_path / "out")
     assert not (tmp_path / "out" / "policy.onnx").exists()
+
+
+def test_humanoid_urdf_keeps_the_pelvis_and_takes_a_free_joint_in_mujoco(humanoid_urdf: Path) -> None:
+    """MuJoCo fused the URDF's root link into the world and lost the 7.8 kg pelvis; with the
+    file's MuJoCo extension it stays, and one free joint gives the floating base: the whole
+    humanoid's mass and degrees of freedom, as the MJCF model has them."""
+    from crisp_gym.export.urdf import UrdfConfig
+
+    model = build_humanoid()
+    spec = mujoco.MjSpec.from_file(str(humanoid_urdf))
+    spec.body("Pelvis").add_freejoint()
+    floating = spec.compile()
+    pelvis = model.body("Pelvis").id
+    np.testing.assert_allclose(floating.body_mass[floating.body("Pelvis").id], model.body_mass[pelvis])
+    extra = floating.body_subtreemass[0] - model.body_subtreemass[0]  # the 46 intermediate links
+    assert extra == pytest.approx(46 * UrdfConfig().link_mass)
+    assert floating.nv == model.nv and floating.jnt_type[floating.body_jntadr[floating.body("Pelvis").id]] == 0
+    assert len(yourdfpy.URDF.load(str(humanoid_urdf)).robot.links) == floating.nbody - 1  # other readers skip it

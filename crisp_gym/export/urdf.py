@@ -7,7 +7,11 @@ Humanoid (:func:`humanoid_robot`): URDF joints have one degree of freedom, so a 
 hinges becomes three revolute joints named like the hinges (``L_Knee_x``, ``L_Knee_y``, ``L_Knee_z``,
 applied in that order, as MuJoCo does) through two small intermediate links (``L_Knee_x_link``,
 ``L_Knee_y_link``); the last joint's child is the body's own link, which carries its mass, inertia and
-geometry. The pelvis is the root link; importers give it the floating base.
+geometry. The pelvis is the root link; importers give it the floating base. MuJoCo's URDF parser
+fixes the root to the world and, by default, fuses it away with its mass: the file carries MuJoCo's
+URDF extension ``<mujoco><compiler fusestatic="false"/></mujoco>`` so the pelvis stays a body, and
+``spec = mujoco.MjSpec.from_file("humanoid.urdf"); spec.body("Pelvis").add_freejoint()`` gives it
+the free joint (``docs/export.md``).
 
 Approximations (also listed in ``docs/export.md``):
 
@@ -29,6 +33,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import yourdfpy
+from lxml import etree
 from yourdfpy import urdf as U
 
 from crisp_gym.export.actuators import actuator_table, joint_servos
@@ -166,10 +171,17 @@ def humanoid_robot(model: mujoco.MjModel | None = None, config: UrdfConfig = Urd
     return U.Robot(name=name, links=links, joints=joints)
 
 
-def write_robot(robot: U.Robot, path: str | Path) -> Path:
-    """Write a URDF robot atomically (yourdfpy's writer)."""
+def write_robot(robot: U.Robot, path: str | Path, mujoco_compiler: dict[str, str] | None = None) -> Path:
+    """Write a URDF robot atomically (yourdfpy's writer), with MuJoCo's URDF extension
+    ``<mujoco><compiler .../></mujoco>`` when ``mujoco_compiler`` gives its attributes (other
+    URDF readers skip the element)."""
+    tree = yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False).write_xml()
+    if mujoco_compiler:
+        extension = etree.Element("mujoco")
+        etree.SubElement(extension, "compiler", mujoco_compiler)
+        tree.getroot().insert(0, extension)
     with atomic_path(path) as tmp:
-        yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False).write_xml_file(str(tmp))
+        tree.write(str(tmp), xml_declaration=True, pretty_print=True)
     return Path(path)
 
 
@@ -179,6 +191,7 @@ def write_urdf(boxes: list[Box], directory: str | Path, config: UrdfConfig = Urd
     model = build_humanoid(HumanoidConfig())
     return [
         write_robot(scene_robot(boxes), directory / "scene.urdf"),
-        write_robot(humanoid_robot(model, config), directory / "humanoid.urdf"),
+        # MuJoCo fuses a URDF's root link into the world, dropping the pelvis (7.8 kg) with it
+        write_robot(humanoid_robot(model, config), directory / "humanoid.urdf", {"fusestatic": "false"}),
         write_text(directory / "humanoid_actuators.json", json.dumps(actuator_table(model), indent=1) + "\n"),
     ]
