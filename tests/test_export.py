@@ -288,6 +288,9 @@ def test_scene_meshes(exported, kind: str) -> None:
         # each vertex is a corner and each corner a vertex
         distances = np.linalg.norm(vertices[:, None] - corners[None], axis=-1)
         assert distances.min(axis=1).max() < GEOMETRY_TOL and distances.min(axis=0).max() < GEOMETRY_TOL
+    if kind == "obj":  # as a user loads it, with no options: one geometry per box, named like it
+        loaded = trimesh.load(out / "mesh" / "scene.obj", force="scene")
+        assert sorted(loaded.geometry) == sorted(_box_names(clip.boxes))
 
 
 def test_meshes_colour_by_source(tmp_path: Path) -> None:

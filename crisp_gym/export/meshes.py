@@ -2,7 +2,8 @@
 
 Each box is one named node. In GLB the node holds a shared cube with corners at ±1 and the box's
 pose and half sizes in its transform (stored as JSON doubles), so no size is rounded to float32;
-OBJ has no node transforms and gets the corners themselves, with ``digits`` decimals.
+OBJ has no node transforms and gets the corners themselves, with ``digits`` decimals, one object
+and one material per box (``scene.mtl`` beside it), so OBJ readers load one geometry per box.
 
 Colours: uniform grey by default; ``color_by_source=True`` colours the primitives by where they
 came from (planar fits blue, contact-derived orange), the overlay the paper's figures use.
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from crisp_gym.atomic import atomic_path
+from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.scene import Box
 
 SOURCE_RGBA = {"planar": (0.45, 0.6, 0.85, 1.0), "contact": (0.9, 0.55, 0.3, 1.0)}
@@ -66,11 +67,26 @@ def write_scene_mesh(boxes: list[Box], path: str | Path, color_by_source: bool =
         if kind == "glb":
             scene.export(tmp, file_type="glb")
         else:
-            # One object per box with its corners in world coordinates.
-            baked = trimesh.Scene()
-            for name in scene.graph.nodes_geometry:
-                transform, geometry = scene.graph[name]
-                baked.add_geometry(scene.geometry[geometry].copy().apply_transform(transform), node_name=name,
-                                   geom_name=name)
-            baked.export(tmp, file_type="obj", digits=digits, include_normals=False)
+            obj, mtl = _obj_and_mtl(scene, path.with_suffix(".mtl").name, digits)
+            tmp.write_text(obj)
+    if kind == "obj":
+        write_text(path.with_suffix(".mtl"), mtl)
     return path
+
+
+def _obj_and_mtl(scene: trimesh.Scene, mtl_name: str, digits: int) -> tuple[str, str]:
+    """OBJ and MTL text: one object and one material per box, both named like it, corners in world
+    coordinates. trimesh's own OBJ writer shares one material among boxes of one colour, and
+    readers that split a file by material (trimesh's default) then merged them into one mesh."""
+    obj, mtl, first = ["# crisp-gym scene: one object and one material per box", f"mtllib {mtl_name}"], [], 1
+    for name in scene.graph.nodes_geometry:
+        transform, geometry = scene.graph[name]
+        mesh = scene.geometry[geometry]
+        corners = trimesh.transform_points(mesh.vertices, transform)
+        red, green, blue, alpha = mesh.visual.face_colors[0] / 255.0
+        mtl += [f"newmtl {name}", f"Kd {red:.4f} {green:.4f} {blue:.4f}", f"d {alpha:.4f}", ""]
+        obj += [f"o {name}", f"usemtl {name}"]
+        obj += [f"v {x:.{digits}f} {y:.{digits}f} {z:.{digits}f}" for x, y, z in corners]
+        obj += [f"f {a} {b} {c}" for a, b, c in mesh.faces + first]
+        first += len(corners)
+    return "\n".join(obj) + "\n", "\n".join(mtl)
