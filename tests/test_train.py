@@ -569,3 +569,33 @@ def test_files_that_are_not_runs_get_a_one_line_error(tmp_path: Path) -> None:
         load_checkpoint(tmp_path / "run" / "checkpoint.pt")
     with pytest.raises(ValueError, match="other.pt is not a version-.* crisp-gym training checkpoint"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_training_scalars_reach_torchrl_loggers(clip_dir: Path, tmp_path: Path) -> None:
+    """``--loggers csv tensorboard``: TorchRL's CSV logger and TensorBoard's event file get the
+    scalars of ``progress.csv``, at the same frame counts (read back with each tool's own reader)."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from train.ppo import train
+
+    cfg = _tiny_config(clip_dir, tmp_path / "run", frames=2048, loggers=("csv", "tensorboard"))
+    train(cfg)
+    rows = list(csv.DictReader(open(tmp_path / "run" / "progress.csv")))
+    expected = [(int(r["frames"]), float(r["mean_return"])) for r in rows if r["mean_return"] not in ("", "nan")]
+    assert expected
+    (csv_file,) = (tmp_path / "run" / "trackers").rglob("mean_return.csv")
+    logged = [(int(step), float(value)) for step, value in csv.reader(open(csv_file))]
+    assert logged == pytest.approx(expected)
+    (events,) = {p.parent for p in (tmp_path / "run" / "trackers").rglob("events.out.tfevents.*")}
+    accumulator = EventAccumulator(str(events))
+    accumulator.Reload()
+    board = [(e.step, e.value) for e in accumulator.Scalars("mean_return")]
+    assert board == pytest.approx(expected, rel=1e-6)  # event files store float32
+
+
+def test_an_unknown_logger_is_named() -> None:
+    from train.ppo import TrainConfig
+
+    with pytest.raises(ValueError, match=r"unknown loggers \['neptune'\]; TorchRL's are csv, tensorboard"):
+        TrainConfig(loggers=("neptune",))

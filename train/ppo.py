@@ -19,8 +19,9 @@ statistics the behaviour policy used) → log → every ``checkpoint_every`` ite
 checkpoint (temp file, then rename). ``resume=True`` continues from the output directory's
 checkpoint (weights, normaliser, optimiser, iteration and frame counts).
 
-Outputs in ``output``: ``config.json``, ``checkpoint.pt``, ``progress.csv`` and, when the
-``tensorboard`` package is importable, TensorBoard event files.
+Outputs in ``output``: ``config.json``, ``checkpoint.pt``, ``progress.csv`` and, with
+``loggers``, the same scalars through TorchRL's experiment loggers (``torchrl.record.loggers``:
+CSV, TensorBoard, W&B, MLflow) under ``output/trackers``.
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ BEST_NAME = "best.pt"  # the checkpoint of the best periodic evaluation so far
 CHECKPOINT_FORMAT = 1
 POLICY_NAME = "policy.pt"
 POLICY_FORMAT = 1
+LOGGERS = ("csv", "tensorboard", "wandb", "mlflow")
+"""The experiment loggers of ``torchrl.record.loggers`` that ``TrainConfig.loggers`` may name."""
 _CSV_FIELDS = ("iteration", "frames", "time_s", "fps", "episodes", "mean_return", "mean_length", "success_rate",
                "loss_objective", "loss_critic", "kl_approx", "clip_fraction", "explained_variance",
                "collect_s", "env_s", "update_s")
@@ -124,6 +127,10 @@ class TrainConfig:
             (0.01–0.02 later), and a 97 %-success policy fell to 44 % within 0.5 M frames.
         resume: continue from ``output/checkpoint.pt``.
         progress: show a progress bar.
+        loggers: experiment trackers that also get every ``progress.csv`` scalar (step: frames),
+            through ``torchrl.record.loggers``: ``csv``, ``tensorboard``, ``wandb``, ``mlflow``
+            (the last three need their package: ``pip install 'crisp-gym[tracking]'`` has
+            TensorBoard and W&B).
     """
 
     clip: tuple[str, ...] = ("flat_walk",)
@@ -162,6 +169,7 @@ class TrainConfig:
     actor_lr_warmup: int = 100
     resume: bool = False
     progress: bool = True
+    loggers: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if isinstance(self.clip, (str, os.PathLike)):  # one clip, as configs before motion libraries held it
@@ -184,6 +192,9 @@ class TrainConfig:
             raise ValueError("eval_every, critic_warmup and actor_lr_warmup must be non-negative")
         if self.until_success is not None and not (0 < self.until_success <= 1 and self.eval_every > 0):
             raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
+        unknown = [name for name in self.loggers if name not in LOGGERS]
+        if unknown:
+            raise ValueError(f"unknown loggers {unknown}; TorchRL's are {', '.join(LOGGERS)}")
         rates = {name: getattr(self, name) for name in ("actor_lr", "critic_lr", "clip_epsilon", "max_grad_norm")}
         bad_rates = [f"{name}={value!r}" for name, value in rates.items() if not (math.isfinite(value) and value > 0)]
         if bad_rates:
@@ -559,10 +570,22 @@ def _check_resumable(saved: TrainConfig, cfg: TrainConfig, action: str = "resume
 # Logging
 
 
-class RunLogger:
-    """CSV rows (+ TensorBoard scalars when the ``tensorboard`` package is importable)."""
+def _tracker(kind: str, directory: Path):
+    """A ``torchrl.record.loggers`` logger of ``kind`` writing under ``directory / "trackers"``."""
+    from torchrl.record.loggers import get_logger  # noqa: PLC0415 - only runs that ask for trackers
 
-    def __init__(self, directory: Path, append: bool, iteration: int = 0, extra_fields: tuple[str, ...] = ()):
+    try:
+        return get_logger(kind, logger_name=str(directory / "trackers"), experiment_name=directory.name)
+    except ImportError as err:
+        raise ModuleNotFoundError(f"--loggers {kind} needs the {err.name or kind} package: pip install "
+                                  "'crisp-gym[tracking]' (TensorBoard, W&B) or the package itself") from None
+
+
+class RunLogger:
+    """``progress.csv`` rows, and the same scalars to TorchRL's experiment loggers (``kinds``)."""
+
+    def __init__(self, directory: Path, append: bool, iteration: int = 0, extra_fields: tuple[str, ...] = (),
+                 kinds: tuple[str, ...] = ()):
         self.path = directory / "progress.csv"
         self.fields = _CSV_FIELDS + tuple(extra_fields)
         new = not (append and self.path.exists())
@@ -572,13 +595,7 @@ class RunLogger:
         self._csv = csv.DictWriter(self._file, fieldnames=self.fields, extrasaction="ignore")
         if new:
             self._csv.writeheader()
-        self._tb = None
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError:  # tensorboard is optional
-            pass
-        else:
-            self._tb = SummaryWriter(str(directory / "tb"))
+        self._trackers = [_tracker(kind, directory) for kind in kinds]
 
     def _truncate(self, iteration: int) -> None:
         """Drop rows after ``iteration``: a run that died between checkpoints logged
@@ -599,15 +616,17 @@ class RunLogger:
     def log(self, row: dict[str, float]) -> None:
         self._csv.writerow(row)
         self._file.flush()
-        if self._tb is not None:
+        for tracker in self._trackers:
             for key, value in row.items():
                 if key not in ("iteration", "frames") and isinstance(value, (int, float)) and math.isfinite(value):
-                    self._tb.add_scalar(key, value, row["frames"])
+                    tracker.log_scalar(key, float(value), step=int(row["frames"]))
 
     def close(self) -> None:
         self._file.close()
-        if self._tb is not None:
-            self._tb.close()
+        for tracker in self._trackers:
+            writer = getattr(tracker, "experiment", None)
+            if hasattr(writer, "close"):  # TensorBoard's SummaryWriter holds its event file open
+                writer.close()
 
 
 def _clip_fields(clip_names: list[str], cfg: TrainConfig) -> tuple[str, ...]:
@@ -820,7 +839,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
 
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
                                        num_threads=cfg.num_threads)
-    logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=_clip_fields(clip_names, cfg))
+    logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=_clip_fields(clip_names, cfg),
+                       kinds=cfg.loggers)
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}
     bar = tqdm(total=cfg.frames, initial=min(frames, cfg.frames), unit="frame", unit_scale=True,
