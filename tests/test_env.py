@@ -1,4 +1,7 @@
+import contextlib
+
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -245,3 +248,75 @@ def test_blowing_up_ends_the_episode_with_a_bounded_reward(sway_clip):
     assert terminated and info["unstable"] and np.isfinite(reward)
     single.close()
     venv.close()
+
+
+def test_batched_env_renders_every_simulation_as_the_single_env_would(sway_clip):
+    """``render_mode="rgb_array"`` on the batched env (it refused to render): one image per
+    simulation, each the single env's image of the same state."""
+    from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+
+    size = {"render_width": 96, "render_height": 72}
+    venv = CrispTrackVectorEnv(3, clip=str(sway_clip), render_mode="rgb_array", **size)
+    venv.reset(seed=0, options={"start_frame": [0, 10, 20]})
+    venv.step(np.zeros((3, venv.model.nu)))
+    images = venv.render()
+    single = CrispTrackEnv(clip=str(sway_clip), render_mode="rgb_array", **size)
+    single.reset(seed=0)
+    assert len(images) == 3 and len({img.tobytes() for img in images}) == 3  # three different poses
+    for k, image in enumerate(images):
+        single.data.qpos[:], single.data.qvel[:] = venv._fields["qpos"][k], venv._fields["qvel"][k]
+        mujoco.mj_forward(single.model, single.data)
+        np.testing.assert_array_equal(image, single.render())
+    venv.close()
+    single.close()
+
+
+class _RecordingViewer:
+    """Stands in for MuJoCo's passive viewer window: records what it was asked to show."""
+
+    def __init__(self, model, data, **kwargs):
+        self.data, self.synced, self.closed = data, [], False
+
+    def lock(self):
+        return contextlib.nullcontext()
+
+    def sync(self):
+        self.synced.append(self.data.qpos.copy())
+
+    def close(self):
+        self.closed = True
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_human_mode_shows_every_step_in_mujocos_viewer(sway_clip, monkeypatch, batched):
+    """``render_mode="human"`` (it needed pygame) opens MuJoCo's own viewer and syncs it on reset
+    and every step with the (first) simulation's state; without a display it says so instead of
+    letting GLFW end the process."""
+    import mujoco.viewer
+
+    from crisp_gym import render
+    from crisp_gym.envs.track_vector import CrispTrackVectorEnv
+
+    viewers = []
+
+    def launch_passive(model, data, **kwargs):
+        viewers.append(_RecordingViewer(model, data, **kwargs))
+        return viewers[-1]
+
+    monkeypatch.setattr(render, "has_display", lambda: True)
+    monkeypatch.setattr(mujoco.viewer, "launch_passive", launch_passive)
+    env = CrispTrackVectorEnv(2, clip=str(sway_clip), render_mode="human") if batched else \
+        CrispTrackEnv(clip=str(sway_clip), render_mode="human")
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(np.zeros((2, env.model.nu)) if batched else np.zeros(env.model.nu))
+    (viewer,) = viewers
+    assert len(viewer.synced) == 4  # reset and three steps
+    shown = env._fields["qpos"][0] if batched else env.data.qpos
+    np.testing.assert_array_equal(viewer.synced[-1], shown)
+    env.close()
+    assert viewer.closed
+    monkeypatch.setattr(render, "has_display", lambda: False)
+    headless = CrispTrackEnv(clip=str(sway_clip), render_mode="human")
+    with pytest.raises(RuntimeError, match="needs a display"):
+        headless.reset(seed=0)

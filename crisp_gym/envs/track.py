@@ -14,6 +14,7 @@ from crisp_gym.envs.config import TrackConfig, default_config
 from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs import tracking
 from crisp_gym.envs.task import TrackingTask
+from crisp_gym.render import HumanViewer
 
 _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
 
@@ -77,12 +78,12 @@ class CrispTrackEnv(gym.Env):
     blew up: see ``max_joint_speed``); the same keys after ``reset`` (terms 0, no success yet).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 30}
 
     def __init__(self, clip: ClipSource | Sequence[ClipSource] = "flat_walk", scene_aware: bool = False,
                  render_mode: str | None = None, config: TrackConfig | None = None, **overrides: Any):
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
         self.config = make_config(config, {"scene_aware": scene_aware, **overrides})
         self.task = TrackingTask(clip, self.config)
         self.start_sampler = self.task.start_sampler()
@@ -96,6 +97,7 @@ class CrispTrackEnv(gym.Env):
         self._frame = np.zeros(1, dtype=int)
         self._start_frame = 0
         self._renderer: mujoco.Renderer | None = None
+        self._viewer: HumanViewer | None = None
 
     def _state(self):
         d = self.data
@@ -121,6 +123,8 @@ class CrispTrackEnv(gym.Env):
         state = self._state()
         obs = self.task.observe(state, clips, frames)
         error = self.task.tracking_error(state, clips, frames)
+        if self.render_mode == "human":
+            self.render()
         return ({k: v[0] for k, v in obs.items()},
                 {"clip": int(clips[0]), "frame": self._start_frame, "start_frame": self._start_frame,
                  **{f"reward_{name}": 0.0 for name in tracking.REWARD_TERMS},
@@ -147,10 +151,19 @@ class CrispTrackEnv(gym.Env):
         info = {"clip": int(self._clip[0]), "frame": int(next_frame[0]), "start_frame": self._start_frame,
                 **{k: float(v[0]) for k, v in tracking.reward_info(terms).items()},
                 "max_body_error": float(error[0]), "success": bool(truncated[0]), "unstable": bool(unstable[0])}
+        if self.render_mode == "human":
+            self.render()
         return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),
                 bool(truncated[0]), info)
 
     def render(self):
+        """``rgb_array``: the frame from the ``follow`` camera; ``human``: MuJoCo's viewer shows the
+        state (called by ``reset`` and ``step`` themselves, as gymnasium's human mode does)."""
+        if self.render_mode == "human":
+            if self._viewer is None:
+                self._viewer = HumanViewer(self.model, self.data)
+            self._viewer.sync()
+            return None
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
@@ -162,3 +175,6 @@ class CrispTrackEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None

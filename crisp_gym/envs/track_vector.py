@@ -30,6 +30,7 @@ from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs.task import TrackingTask
 from crisp_gym.envs.track import make_config
 from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
+from crisp_gym.render import HumanViewer, render_states
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force")
 
@@ -50,13 +51,16 @@ class CrispTrackVectorEnv(VectorEnv):
         num_threads: MuJoCo threads stepping the batch (0: all CPUs).
         autoreset_mode: ``"same_step"`` (default) or ``"next_step"`` (or the ``AutoresetMode``);
             see the module docstring.
+        render_mode: ``"rgb_array"``: ``render()`` returns one image per simulation (a tuple, as
+            gymnasium's vector envs do), each from its ``follow`` camera; ``"human"``: MuJoCo's
+            viewer shows the first simulation, synced on every ``reset`` and ``step``.
         config, **overrides: as for the single env.
 
     ``reset(options={"start_frame": frames, "clip": clips})`` fixes the start frames and/or
     clips (scalars or one per simulation).
     """
 
-    metadata = {"render_modes": [], "autoreset_mode": AutoresetMode.SAME_STEP}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 30, "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int = 1, clip: ClipSource | Sequence[ClipSource] = "flat_walk",
                  scene_aware: bool = False, num_threads: int = 0,
@@ -64,8 +68,9 @@ class CrispTrackVectorEnv(VectorEnv):
                  render_mode: str | None = None, **overrides: Any):
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
-        if render_mode is not None:
-            raise ValueError("the batched env does not render; use the single env for videos")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
+        self.render_mode = render_mode
         self.config = make_config(config, {"scene_aware": scene_aware, **overrides})
         self.task = TrackingTask(clip, self.config)
         self.start_sampler = self.task.start_sampler()
@@ -76,7 +81,7 @@ class CrispTrackVectorEnv(VectorEnv):
         if mode not in modes:
             raise ValueError(f"autoreset_mode must be one of {sorted(modes)}, got {autoreset_mode!r}")
         self.autoreset_mode = modes[mode]
-        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode, "render_fps": self.config.control_hz}
         self._needs_reset = np.zeros(num_envs, dtype=bool)  # NEXT_STEP: finished on the previous step
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
         self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS}
@@ -88,6 +93,9 @@ class CrispTrackVectorEnv(VectorEnv):
         self._frame = np.zeros(num_envs, dtype=int)
         self._start_frame = np.zeros(num_envs, dtype=int)
         self._all = np.arange(num_envs)
+        self._scratch = mujoco.MjData(self.model)  # one simulation's state, for drawing it
+        self._renderer: mujoco.Renderer | None = None
+        self._viewer: HumanViewer | None = None
 
     def _state(self, ids: np.ndarray | slice = slice(None)):
         f = {name: self._fields[name][ids] for name in _BOUND_FIELDS if name != "ctrl"}
@@ -124,11 +132,19 @@ class CrispTrackVectorEnv(VectorEnv):
         # The same keys as a step's info (terms zero, no success yet): wrappers that read infos
         # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
         terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
+        if self.render_mode == "human":
+            self.render()
         return obs, {"clip": self._clip.copy(), "frame": self._frame.copy(), "start_frame": self._start_frame.copy(),
                      **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool),
                      "unstable": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
+        result = self._step(actions)
+        if self.render_mode == "human":
+            self.render()
+        return result
+
+    def _step(self, actions):
         # NEXT_STEP: a simulation reset by this step does not advance past its clip's end.
         next_frame = self._frame + ~self._needs_reset
         self._fields["ctrl"][:] = self.task.controls(np.asarray(actions).reshape(self.num_envs, -1), self._clip,
@@ -195,7 +211,29 @@ class CrispTrackVectorEnv(VectorEnv):
         self._needs_reset = finished
         return obs, reward.astype(np.float64), terminated, truncated, info
 
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """See ``render_mode`` in the class docstring."""
+        qpos, qvel = self._fields["qpos"], self._fields["qvel"]
+        if self.render_mode == "human":
+            self._scratch.qpos[:], self._scratch.qvel[:] = qpos[0], qvel[0]
+            mujoco.mj_forward(self.model, self._scratch)
+            if self._viewer is None:
+                self._viewer = HumanViewer(self.model, self._scratch)
+            self._viewer.sync()
+            return None
+        if self.render_mode != "rgb_array":
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, self.config.render_height, self.config.render_width)
+        return render_states(self._renderer, self.model, self._scratch, qpos, qvel)
+
     def close_extras(self, **kwargs: Any) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
         self.batch = None
 
 
