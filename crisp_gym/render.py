@@ -10,6 +10,36 @@ import mujoco
 import numpy as np
 
 
+SKY = ((0.62, 0.76, 0.92), (0.16, 0.22, 0.34))
+"""Skybox gradient, horizon to zenith."""
+CHECKER = ((0.80, 0.80, 0.78), (0.66, 0.66, 0.64))
+"""The floor's checker squares (0.5 m)."""
+
+
+def style_scene(spec: mujoco.MjSpec) -> None:
+    """Dress a composed model as MuJoCo's own demos are: a gradient sky, a checkered floor (every
+    geom named ``floor``, also a motion library's ``clip3/floor``), soft light and fine shadows.
+    Only how it looks changes: no mass, contact or solver setting."""
+    spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX, builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+                     rgb1=SKY[0], rgb2=SKY[1], width=512, height=3072)
+    spec.add_texture(name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER, rgb1=CHECKER[0], rgb2=CHECKER[1],
+                     width=512, height=512)
+    floor = spec.add_material(name="floor", texrepeat=(2.0, 2.0), texuniform=True, reflectance=0.05)
+    floor.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "checker"
+    for geom in spec.geoms:
+        if geom.name == "floor" or geom.name.endswith("/floor"):
+            geom.material = "floor"
+            geom.rgba = (1.0, 1.0, 1.0, 1.0)
+    spec.visual.quality.shadowsize = 4096
+    # a directional light's shadow map spans the model's extent, which a 40 m floor makes coarse:
+    # the clips' action is within a few metres of the origin
+    spec.stat.extent = 6.0
+    spec.visual.headlight.ambient = (0.35, 0.35, 0.35)
+    spec.visual.headlight.diffuse = (0.45, 0.45, 0.45)
+    spec.visual.headlight.specular = (0.1, 0.1, 0.1)
+
+
 class GhostRenderer:
     """Renders ``data`` and overlays the humanoid posed at a reference ``qpos``.
 

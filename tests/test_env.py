@@ -126,6 +126,9 @@ def test_render_rgb_array(sway_clip):
     image = env.render()
     env.close()
     assert image.shape == (120, 160, 3) and image.dtype == np.uint8 and image.std() > 5
+    sky, ground = image[:12].astype(float), image[-20:].astype(float)
+    assert sky.mean() > 60 and sky[..., 2].mean() > sky[..., 0].mean()  # a blue sky, not black
+    assert ground.std() > 15  # the floor is checkered, not one flat colour
 
 
 def test_nearest_points_match_brute_force() -> None:

@@ -38,6 +38,7 @@ from crisp_gym.envs.config import TrackConfig
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg
 from crisp_gym.mjcf_scene import attach_scene, surface_points
 from crisp_gym.motion import Motion, compute_kinematics
+from crisp_gym.render import style_scene
 from crisp_gym.scene import Box, add_boxes, sample_surface_points
 
 NUM_BODIES = len(BODY_NAMES)
@@ -68,9 +69,12 @@ def build_track_spec(boxes: list[Box], timestep: float,
     add_boxes(spec, boxes)
     for i, (scene_xml, offset) in enumerate(scene_xmls):
         attach_scene(spec, scene_xml, prefix="scene/" if len(scene_xmls) == 1 else f"scene{i}/", offset=offset)
-    spec.worldbody.add_light(name="key", pos=(0, 0, 5), dir=(0, 0, -1), type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    spec.worldbody.add_light(name="key", pos=(0, 0, 5), dir=(0.3, 0.2, -1), castshadow=True,
+                             type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, diffuse=(0.6, 0.6, 0.6))
+    # 4.6 m back, looking 14° down at the pelvis: the whole body and a few metres of scene
     spec.body("Pelvis").add_camera(name="follow", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
-                                   pos=(0.0, -3.5, 0.6), xyaxes=(1, 0, 0, 0, 0.17, 1))
+                                   pos=(0.0, -4.5, 1.1), xyaxes=(1, 0, 0, 0, 0.25, 1))
+    style_scene(spec)
     return spec
 
 
