@@ -57,12 +57,15 @@ class Clip:
 
 
 def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: dict | None = None,
-               overwrite: bool = False, write_scene: Callable[[Path], None] | None = None) -> Path:
+               overwrite: bool = False, write_scene: Callable[[Path], None] | None = None,
+               write_extras: Callable[[Path], None] | None = None) -> Path:
     """Write a clip directory atomically and return its path.
 
     ``meta`` is completed with the motion's ``fps``, ``num_frames`` and the primitive counts.
     ``write_scene``, for scenes that are not boxes, writes ``scene.xml`` and the files it
     references into the directory being built (its argument) instead of the boxes' scene.
+    ``write_extras`` writes further files (a report page, a video) into it, so they appear with
+    the clip or not at all.
     """
     directory = Path(directory)
     meta = dict(meta or {})
@@ -78,6 +81,8 @@ def write_clip(directory: str | Path, boxes: list[Box], motion: Motion, meta: di
         motion.save(tmp / "motion.npz")
         save_primitives(boxes, tmp / "primitives.json")
         (tmp / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
+        if write_extras is not None:
+            write_extras(tmp)
     return directory
 
 

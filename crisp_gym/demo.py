@@ -7,7 +7,7 @@ pose fed to the PD servos, zero residual), the baseline that the policy must bea
 the same way and reported as a comparison row. Clips without a shipped policy get the
 PD-reference controller alone.
 
-Outputs in ``--output``: ``report.json``, ``tracking.png`` (largest body error and reward
+Outputs in ``--output``: ``report.html`` (the page to open), ``report.json``, ``tracking.png`` (largest body error and reward
 terms over time), ``torques.png`` and ``rollout.mp4`` (the simulated humanoid with its
 reference as a green ghost).
 

@@ -57,6 +57,7 @@ from reconstruct.io import (
     read_video,
 )
 from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
+from reconstruct.report_page import write_report_page
 
 
 @dataclass(frozen=True)
@@ -294,7 +295,8 @@ def run(args: ReconstructArgs) -> Path:
         write_scene_dir(out, result.boxes, meta, overwrite=args.overwrite)
         print(f"wrote scene '{name}' ({len(result.boxes)} primitives) to {out}")
         return out
-    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite)
+    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite,
+               write_extras=lambda tmp: write_report_page(tmp, meta, result.boxes, result.motion))
     counts = meta["counts"]
     print(f"wrote clip '{name}': {counts['planar']} planar + {counts['contact']} contact primitives, "
           f"scale {result.alignment.scale:.3f}, to {out}")
@@ -304,7 +306,8 @@ def run(args: ReconstructArgs) -> Path:
 
 
 def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
-    """The plain-video path (:mod:`reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``."""
+    """The plain-video path (:mod:`reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``,
+    ``report.html``."""
     from reconstruct.video import SfmConfig, VideoConfig, check_video_extras, reconstruct_video  # noqa: PLC0415
     from reconstruct.video_report import write_comparison  # noqa: PLC0415
 
@@ -320,9 +323,13 @@ def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
             "intrinsic": result.cameras.intrinsic.round(3).tolist()}
     if result.completion is not None:
         meta["contact_primitives"] = result.completion.meta()
-    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite)
     start = time.perf_counter()
-    write_comparison(result, frames, fps, out / "comparison.mp4")
+
+    def extras(tmp: Path) -> None:
+        write_comparison(result, frames, fps, tmp / "comparison.mp4")
+        write_report_page(tmp, meta, result.boxes, result.motion, video="comparison.mp4")
+
+    write_clip(out, result.boxes, result.motion, meta, overwrite=args.overwrite, write_extras=extras)
     print(f"wrote clip '{name}': {len(result.boxes)} primitives, {result.motion.num_frames} frames, scale "
           f"{result.scale:.4g} m per SfM unit{' (fixed camera)' if result.cameras.static else ''}, to {out} "
           f"(comparison video in {time.perf_counter() - start:.0f} s)")

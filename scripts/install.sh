@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Installs what crisp-gym needs on a fresh Debian/Ubuntu machine: system libraries for
-# Open3D (libusb) and headless rendering (EGL/OSMesa), then the package itself (editable,
+# Open3D (libusb) and headless rendering (EGL/OSMesa), Chromium (the tests open the HTML reports
+# in it), then the package itself (editable,
 # so the bundled assets and registry.yaml next to it are found) with its test and video extras,
 # and MediaPipe for the video path in its private folder.
 # PyTorch is pinned first: an unpinned torch would pull several GB of CUDA wheels.
@@ -8,7 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_apt=()
-for pkg in libusb-1.0-0 libgomp1 libegl1 libgl1 libgl1-mesa-dri libosmesa6; do
+for pkg in libusb-1.0-0 libgomp1 libegl1 libgl1 libgl1-mesa-dri libosmesa6 chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if ((${#need_apt[@]})); then

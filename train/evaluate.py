@@ -22,7 +22,7 @@ simulated humanoid against the reference (positions in metres, errors in millime
 * ``accel_error_mm_frame2``: mean norm of the difference of the joints' second finite
   differences (mm/frame², the HMR literature's unit).
 
-Outputs in ``-o``: ``report.json``, ``tracking.png`` (largest body error and reward terms over
+Outputs in ``-o``: ``report.html`` (the page to open), ``report.json``, ``tracking.png`` (largest body error and reward terms over
 time), ``torques.png`` (actuator torques by body group) and ``rollout.mp4`` (the simulated
 humanoid with its reference as a green ghost).
 """
@@ -46,6 +46,7 @@ from tqdm.auto import tqdm
 
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.envs.tracking import terms_from_info
+from crisp_gym.html_report import Section, rows_from, write_html_report
 from train.models import ACTION_DIM
 
 SEGMENT_FRAMES = 100
@@ -556,7 +557,8 @@ def evaluate_policy(policy: Policy, clip: str | os.PathLike, *, episodes: int = 
 
 
 def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title: str) -> list[str]:
-    """report.json, tracking.png, torques.png and (with images) rollout.mp4 in ``output``."""
+    """report.json, tracking.png, torques.png, (with images) rollout.mp4 and report.html, the page
+    that shows them, in ``output``."""
     output.mkdir(parents=True, exist_ok=True)
     plot_tracking(rollout, output / "tracking.png", title)
     plot_torques(rollout, output / "torques.png", title)
@@ -565,6 +567,12 @@ def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title:
         write_video(rollout.images, rollout.control_hz, output / "rollout.mp4")
         written.append("rollout.mp4")
     write_json(report, output / "report.json")
+    write_html_report(output / "report.html", title, [
+        Section("Summary", rows=rows_from(report)),
+        Section("Tracking and torques", figures=("tracking.png", "torques.png")),
+        Section("Rollout from frame 0 (the reference as a ghost)", videos=("rollout.mp4",)),
+    ], subtitle="crisp eval")
+    written.append("report.html")
     return written
 
 

@@ -1,4 +1,4 @@
-"""Write a diagnosis as ``report.json`` (machine-readable) and ``report.md`` with plots.
+"""Write a diagnosis as ``report.json`` (machine-readable), ``report.md`` with plots, and ``report.html``.
 
 Everything is written into a temporary folder beside the target and renamed into place,
 so an interrupted run never leaves a half-written report.
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from crisp_gym.atomic import atomic_directory
+from crisp_gym.html_report import markdown_section, write_html_report
 
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
@@ -22,12 +23,17 @@ def to_json(result: dict) -> dict:
 
 
 def write_report(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
-    """Write ``report.json``, ``report.md`` and PNG plots into ``out_dir``."""
+    """Write ``report.json``, ``report.md``, PNG plots and ``report.html`` (the Markdown with its
+    plots, to open in a browser) into ``out_dir``."""
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=True) as tmp:
         (tmp / "report.json").write_text(json.dumps(to_json(result), indent=1, default=_jsonable))
         figures = _plots(result, tmp) if plots and "_replay" in result else []
-        (tmp / "report.md").write_text(_markdown(result, figures))
+        text = _markdown(result, figures)
+        (tmp / "report.md").write_text(text)
+        title, _, body = text.partition("\n")
+        write_html_report(tmp / "report.html", title.lstrip("# "), [markdown_section("Diagnosis", body)],
+                          subtitle="crisp gap diagnose")
     return out_dir
 
 
