@@ -7,9 +7,9 @@ pose fed to the PD servos, zero residual), the baseline that the policy must bea
 the same way and reported as a comparison row. Clips without a shipped policy get the
 PD-reference controller alone.
 
-Outputs in ``--output``: ``report.html`` (the page to open), ``report.json``, ``tracking.png`` (largest body error and reward
-terms over time), ``torques.png`` and ``rollout.mp4`` (the simulated humanoid with its
-reference as a green ghost).
+Outputs in ``--output``: ``report.html`` (the page to open), ``report.json``, ``tracking.png``
+(largest body error and reward terms over time), ``torques.png`` and ``rollout.mp4`` (the
+simulated humanoid with its reference as a green ghost).
 
 ``--all`` runs the demo for every bundled clip, each into its own subdirectory, and writes
 ``all_clips.mp4`` (the clips' videos one after another, each captioned) and a ``report.json``

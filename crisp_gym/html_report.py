@@ -38,16 +38,24 @@ _PAGE = """<!doctype html>
 {% if subtitle %}<p class="subtitle">{{ subtitle }}</p>{% endif %}
 {% for section in sections %}
 <h2>{{ section.title }}</h2>
-{% if section.rows %}<table>{% for key, value in section.rows %}<tr><td>{{ key }}</td><td>{{ value }}</td></tr>{% endfor %}</table>{% endif %}
+{% if section.rows %}<table>
+{% for key, value in section.rows %}<tr><td>{{ key }}</td><td>{{ value }}</td></tr>
+{% endfor %}</table>{% endif %}
 {% if section.html %}{{ section.html | safe }}{% endif %}
-{% for figure in section.figures %}<figure><img src="{{ figure }}" alt="{{ figure }}"><figcaption>{{ figure }}</figcaption></figure>{% endfor %}
-{% for video in section.videos %}<figure><video src="{{ video }}" controls loop muted preload="metadata"></video><figcaption>{{ video }}</figcaption></figure>{% endfor %}
+{% for figure in section.figures %}
+<figure><img src="{{ figure }}" alt="{{ figure }}"><figcaption>{{ figure }}</figcaption></figure>
+{% endfor %}
+{% for video in section.videos %}
+<figure><video src="{{ video }}" controls loop muted preload="metadata"></video>
+<figcaption>{{ video }}</figcaption></figure>
+{% endfor %}
 {% endfor %}
 <script>
  function count() {
    const images = [...document.images], videos = [...document.querySelectorAll("video")];
    document.body.dataset.images = images.filter(i => i.complete && i.naturalWidth > 0).length + "/" + images.length;
-   document.body.dataset.videos = videos.filter(v => v.readyState >= 1 && v.videoWidth > 0).length + "/" + videos.length;
+   const played = videos.filter(v => v.readyState >= 1 && v.videoWidth > 0);
+   document.body.dataset.videos = played.length + "/" + videos.length;
    document.body.dataset.imageBoxes = images.map(i => { const r = i.getBoundingClientRect();
      return [r.left + scrollX, r.top + scrollY, r.width, r.height].map(Math.round).join(","); }).join(";");
  }
