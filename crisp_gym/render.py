@@ -1,5 +1,6 @@
-"""Rendering: offscreen images of the humanoid (with its reference as a translucent ghost, or a
-batch of simulations one image each), and MuJoCo's interactive viewer for ``render_mode="human"``."""
+"""Rendering: how a composed model looks (:func:`style_scene`), offscreen images of the humanoid
+(with its reference as a translucent ghost), and what an env's ``render()`` shows
+(:class:`EnvDisplay`: images, or MuJoCo's interactive viewer for ``render_mode="human"``)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import sys
 
 import mujoco
 import numpy as np
-
 
 SKY = ((0.62, 0.76, 0.92), (0.16, 0.22, 0.34))
 """Skybox gradient, horizon to zenith."""
@@ -102,14 +102,33 @@ class HumanViewer:
         self.handle.close()
 
 
-def render_states(renderer: mujoco.Renderer, model: mujoco.MjModel, scratch: mujoco.MjData, qpos: np.ndarray,
-                  qvel: np.ndarray, camera: str = "follow") -> tuple[np.ndarray, ...]:
-    """One image per row of ``qpos``/``qvel`` (a batch of simulations of ``model``), each posed in
-    ``scratch`` and drawn by ``renderer`` from ``camera``."""
-    images = []
-    for q, v in zip(qpos, qvel):
-        scratch.qpos[:], scratch.qvel[:] = q, v
-        mujoco.mj_forward(model, scratch)
-        renderer.update_scene(scratch, camera=camera)
-        images.append(renderer.render())
-    return tuple(images)
+class EnvDisplay:
+    """What an env's ``render()`` shows for its ``render_mode``: ``"rgb_array"`` images from the
+    ``follow`` camera, or ``"human"`` MuJoCo's viewer window; made on first use, closed with the env."""
+
+    def __init__(self, model: mujoco.MjModel, mode: str | None, width: int, height: int):
+        self.model, self.mode, self.size = model, mode, (height, width)
+        self._renderer: mujoco.Renderer | None = None
+        self._viewer: HumanViewer | None = None
+
+    def show(self, data: mujoco.MjData) -> np.ndarray | None:
+        """The image of ``data`` (``rgb_array``), or ``None`` after syncing the viewer (``human``)."""
+        if self.mode == "human":
+            if self._viewer is None:
+                self._viewer = HumanViewer(self.model, data)
+            self._viewer.sync()
+            return None
+        if self.mode != "rgb_array":
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, *self.size)
+        self._renderer.update_scene(data, camera="follow")
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None

@@ -14,7 +14,7 @@ from crisp_gym.envs.config import TrackConfig, default_config
 from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs import tracking
 from crisp_gym.envs.task import TrackingTask
-from crisp_gym.render import HumanViewer
+from crisp_gym.render import EnvDisplay
 
 _CONFIG_FIELDS = {f.name for f in fields(TrackConfig)}
 
@@ -96,8 +96,7 @@ class CrispTrackEnv(gym.Env):
         self._clip = np.zeros(1, dtype=int)
         self._frame = np.zeros(1, dtype=int)
         self._start_frame = 0
-        self._renderer: mujoco.Renderer | None = None
-        self._viewer: HumanViewer | None = None
+        self._display = EnvDisplay(self.model, render_mode, self.config.render_width, self.config.render_height)
 
     def _state(self):
         d = self.data
@@ -159,22 +158,7 @@ class CrispTrackEnv(gym.Env):
     def render(self):
         """``rgb_array``: the frame from the ``follow`` camera; ``human``: MuJoCo's viewer shows the
         state (called by ``reset`` and ``step`` themselves, as gymnasium's human mode does)."""
-        if self.render_mode == "human":
-            if self._viewer is None:
-                self._viewer = HumanViewer(self.model, self.data)
-            self._viewer.sync()
-            return None
-        if self.render_mode != "rgb_array":
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.config.render_height, self.config.render_width)
-        self._renderer.update_scene(self.data, camera="follow")
-        return self._renderer.render()
+        return self._display.show(self.data)
 
     def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-        if self._viewer is not None:
-            self._viewer.close()
-            self._viewer = None
+        self._display.close()

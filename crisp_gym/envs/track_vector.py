@@ -30,7 +30,7 @@ from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs.task import TrackingTask
 from crisp_gym.envs.track import make_config
 from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
-from crisp_gym.render import HumanViewer, render_states
+from crisp_gym.render import EnvDisplay
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force")
 
@@ -94,8 +94,7 @@ class CrispTrackVectorEnv(VectorEnv):
         self._start_frame = np.zeros(num_envs, dtype=int)
         self._all = np.arange(num_envs)
         self._scratch = mujoco.MjData(self.model)  # one simulation's state, for drawing it
-        self._renderer: mujoco.Renderer | None = None
-        self._viewer: HumanViewer | None = None
+        self._display = EnvDisplay(self.model, render_mode, self.config.render_width, self.config.render_height)
 
     def _state(self, ids: np.ndarray | slice = slice(None)):
         f = {name: self._fields[name][ids] for name in _BOUND_FIELDS if name != "ctrl"}
@@ -213,27 +212,17 @@ class CrispTrackVectorEnv(VectorEnv):
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """See ``render_mode`` in the class docstring."""
-        qpos, qvel = self._fields["qpos"], self._fields["qvel"]
-        if self.render_mode == "human":
-            self._scratch.qpos[:], self._scratch.qvel[:] = qpos[0], qvel[0]
+        if self.render_mode is None:
+            return None
+        images = []
+        for k in range(1 if self.render_mode == "human" else self.num_envs):
+            self._scratch.qpos[:], self._scratch.qvel[:] = self._fields["qpos"][k], self._fields["qvel"][k]
             mujoco.mj_forward(self.model, self._scratch)
-            if self._viewer is None:
-                self._viewer = HumanViewer(self.model, self._scratch)
-            self._viewer.sync()
-            return None
-        if self.render_mode != "rgb_array":
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.config.render_height, self.config.render_width)
-        return render_states(self._renderer, self.model, self._scratch, qpos, qvel)
+            images.append(self._display.show(self._scratch))
+        return None if self.render_mode == "human" else tuple(images)
 
     def close_extras(self, **kwargs: Any) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-        if self._viewer is not None:
-            self._viewer.close()
-            self._viewer = None
+        self._display.close()
         self.batch = None
 
 
