@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     report = run_demo(args)
     _print_rows(report)
     names = ["report.json", "tracking.png", "torques.png"] + (["rollout.mp4"] if args.video else [])
-    print(f"wrote {', '.join(str(args.output / n) for n in names)}")
+    print(f"wrote {', '.join(str(args.output / n) for n in names)}; open {args.output / 'report.html'}")
     return 0
 
 

@@ -622,7 +622,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: success from RSI starts {rsi['success_rate']:.1%} of {rsi['episodes']}; from frame 0: "
               f"{'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} frames); "
               f"W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
-    print(f"wrote {args.output}/report.json" + (" and one folder per clip" if "clips" in report else ""))
+    print(f"wrote {args.output}/report.json" + (" and one folder per clip, each with its report.html" if "clips" in report
+                                                 else f"; open {args.output}/report.html"))
     return 0
 
 
