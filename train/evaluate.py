@@ -22,9 +22,9 @@ simulated humanoid against the reference (positions in metres, errors in millime
 * ``accel_error_mm_frame2``: mean norm of the difference of the joints' second finite
   differences (mm/frame², the HMR literature's unit).
 
-Outputs in ``-o``: ``report.html`` (the page to open), ``report.json``, ``tracking.png`` (largest body error and reward terms over
-time), ``torques.png`` (actuator torques by body group) and ``rollout.mp4`` (the simulated
-humanoid with its reference as a green ghost).
+Outputs in ``-o``: ``report.html`` (the page to open), ``report.json``, ``tracking.png``
+(largest body error and reward terms over time), ``torques.png`` (actuator torques by body
+group) and ``rollout.mp4`` (the simulated humanoid with its reference as a green ghost).
 """
 
 from __future__ import annotations
@@ -622,8 +622,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: success from RSI starts {rsi['success_rate']:.1%} of {rsi['episodes']}; from frame 0: "
               f"{'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} frames); "
               f"W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
-    print(f"wrote {args.output}/report.json" + (" and one folder per clip, each with its report.html" if "clips" in report
-                                                 else f"; open {args.output}/report.html"))
+    where = " and one folder per clip, each with its report.html" if "clips" in report else \
+        f"; open {args.output}/report.html"
+    print(f"wrote {args.output}/report.json{where}")
     return 0
 
 
