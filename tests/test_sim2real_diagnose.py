@@ -1,7 +1,9 @@
 """Identification on logs generated with a known effect (the servo pendulum: fast)."""
 
 import json
+from dataclasses import replace
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import commands, scenario, synthesize, BenchConfig
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.fit import Combo, Fitter
+from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
 from crisp_gym.sim2real.report import REPORT_KEYS, write_report
 
@@ -198,3 +201,25 @@ def test_an_unknown_effect_family_is_named_before_any_fit():
     with pytest.raises(ValueError, match=r"unknown effect families \['friction'\]; the library's are delay, "):
         DiagnoseConfig(families=("friction",))
     assert DiagnoseConfig(families=("coulomb_friction",)).families == ("coulomb_friction",)
+
+
+def test_a_candidate_that_cannot_act_is_skipped_with_its_reason(tmp_path):
+    """The missing-support candidate raised when no geom rested on the ground at the log's mean
+    posture, and the whole diagnosis ended after minutes of fitting. A log whose pendulum never
+    comes near the ground now skips that one candidate, says why, and ranks the others."""
+    from crisp_gym.sim2real import effects as fx
+
+    truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.02], "x0": [0.01]}
+    _, train, test = _case(truth, seed=7)
+    spec = build_servo_pendulum_spec(ServoConfig(kp=400))  # the bench's servo, plus a ground 3 m below
+    for geom in spec.geoms:  # a pendulum that would collide, were anything near it
+        geom.contype = geom.conaffinity = 1
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=(1, 1, 0.05), pos=(0, 0, -3))
+    slotted = add_support_slot(spec).compile()
+    tr = bind(train, slotted)
+    with pytest.raises(fx.CannotApply, match="within 12 cm of the modelled ground"):
+        fx.support_points(tr)
+    res = diagnose([(train, slotted)], [(test, slotted)], replace(CFG, families=("delay", "support_box")))
+    assert [s["effect"] for s in res["skipped"]] == ["support_box[shared]"]
+    assert res["verdict"] == "explained" and res["selected"]["family"] == "delay"
+    assert "cannot act on these logs" in (write_report(res, tmp_path / "rep") / "report.md").read_text()

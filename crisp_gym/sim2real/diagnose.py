@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from tqdm import tqdm
 
-from crisp_gym.sim2real.effects import Effect, check_families, library
+from crisp_gym.sim2real.effects import CannotApply, Effect, check_families, library
 from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
 from crisp_gym.sim2real.gap import where
 from crisp_gym.sim2real.log import RealLog
@@ -190,8 +190,12 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     fitter = Fitter(rep_train, cfg.max_iter)
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
+    skipped: list[dict[str, str]] = []
     for effect in tqdm(effects, desc="fit effects", disable=not cfg.show_progress, leave=False):
-        candidates.append(_fit(fitter, Combo((effect,), tr_train[0])))
+        try:
+            candidates.append(_fit(fitter, Combo((effect,), tr_train[0])))
+        except CannotApply as err:  # one candidate that cannot act on this log ends nothing else
+            skipped.append({"effect": effect.label, "reason": str(err)})
     _evaluate(rep_test, candidates)
     pair_cands = _pairs(candidates, cfg.pairs, tr_train[0], fitter, cfg)
     _evaluate(rep_test, pair_cands)
@@ -217,6 +221,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         "noise_sigma": {n: float(s) for n, s in zip(names, tr_train[0].sigma)},
         "where": where_before,
         "ranking": [_row(c, gap_before, floor, names) for c in ranked],
+        "skipped": skipped,
         "heldout": "time split" if split else "held-out logs",
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
     }

@@ -677,22 +677,45 @@ class SupportBox(_GroundEffect):
         model.body_conaffinity[model.geom_bodyid[g]] = model.geom_conaffinity[g]
 
 
+class CannotApply(ValueError):
+    """An effect that cannot act on this log (the diagnosis skips it and reports why)."""
+
+
+SUPPORT_POSTURES = 16
+"""Postures of a log (evenly spaced) searched for the geoms a missing support could hold."""
+
+
+def _resting(tr: Trajectory, qpos: np.ndarray, moving: np.ndarray, top: float, data: mujoco.MjData) -> list:
+    """xy of the ``moving`` geoms resting on something in posture ``qpos``: within 2 cm of its
+    lowest geom and at most a support box's height (0.1 m) above the modelled ground ``top``."""
+    data.qpos[tr.qadr] = qpos
+    mujoco.mj_kinematics(tr.model, data)
+    low = np.array([lowest_point(tr.model, data, g) for g in moving])
+    return [data.geom_xpos[g, :2].copy() for g in moving[(low < low.min() + 0.02) & (low < top + 0.12)]]
+
+
 def support_points(tr: Trajectory) -> np.ndarray:
-    """(k, 2) world xy of the moving geoms that rest on the ground at the log's mean
-    posture (the feet): where a missing support can act; the start points of its fit."""
+    """(k, 2) world xy of the moving geoms that rest on something (the feet): where a missing
+    support can act; the start points of its fit. Taken at the log's mean posture, else, when
+    nothing rests there (a leg in swing half the time), over :data:`SUPPORT_POSTURES` postures
+    of the log; a ground higher than modelled still holds them (the lowest geoms count)."""
     m = tr.model
-    d = mujoco.MjData(m)
-    d.qpos[tr.qadr] = tr.log.qpos.mean(axis=0)
-    mujoco.mj_kinematics(m, d)
-    top = ground_top(m)
     colliding = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+    moving = np.flatnonzero(colliding & (m.geom_bodyid != 0))
+    if not len(moving):
+        raise CannotApply("no moving geom collides with anything: a missing support could not hold anything")
+    data, top = mujoco.MjData(m), ground_top(m)
+    found = _resting(tr, tr.log.qpos.mean(axis=0), moving, top, data)
+    if not found:
+        postures = tr.log.qpos[np.linspace(0, len(tr.log.qpos) - 1, SUPPORT_POSTURES).astype(int)]
+        found = [xy for qpos in postures for xy in _resting(tr, qpos, moving, top, data)]
     pts: list[np.ndarray] = []
-    for g in np.flatnonzero(colliding & (m.geom_bodyid != 0)):
-        near = any(np.linalg.norm(p - d.geom_xpos[g, :2]) < 0.02 for p in pts)
-        if lowest_point(m, d, g) < top + 0.02 and not near:
-            pts.append(d.geom_xpos[g, :2].copy())
+    for xy in found:
+        if not any(np.linalg.norm(p - xy) < 0.02 for p in pts):
+            pts.append(xy)
     if not pts:
-        raise ValueError("no geom rests on the ground at the log's mean posture: a missing support cannot act")
+        raise CannotApply("no moving geom comes within 12 cm of the modelled ground in the log: a missing "
+                          "support could not hold anything")
     return np.array(pts)
 
 

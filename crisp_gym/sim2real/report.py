@@ -90,6 +90,10 @@ def _markdown(result: dict, figures: list[str]) -> str:
         lines.append(f"| {i} | {r['effect']} | {r['nparam']} | {_fmt(r['gap_train'])} | {_fmt(r['gap_heldout'])} | "
                      f"{100 * r['shrink']:.0f} % | {_fmt(r['gap_over_floor'], 3)} |")
     lines.append("")
+    if result.get("skipped"):
+        lines += ["## Candidates that cannot act on these logs (skipped)", ""]
+        lines += [f"- {s['effect']}: {s['reason']}" for s in result["skipped"]]
+        lines.append("")
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
