@@ -9,7 +9,7 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import commands, scenario, synthesize, BenchConfig
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
+from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose
 from crisp_gym.sim2real.fit import Combo, Fitter
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
@@ -223,3 +223,17 @@ def test_a_candidate_that_cannot_act_is_skipped_with_its_reason(tmp_path):
     assert [s["effect"] for s in res["skipped"]] == ["support_box[shared]"]
     assert res["verdict"] == "explained" and res["selected"]["family"] == "delay"
     assert "cannot act on these logs" in (write_report(res, tmp_path / "rep") / "report.md").read_text()
+
+
+def test_fitted_parameters_at_their_bounds_are_flagged(tmp_path):
+    """A fit that ends at a bound wanted to go further; the report says so instead of presenting
+    the value as identified."""
+    truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.02], "x0": [0.01]}
+    sc, train, test = _case(truth, seed=5)
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    (param,) = res["selected"]["parameters"]
+    assert param["at_bound"] is False  # 20 ms, inside the delay's range
+    bounded = fx.Param("x", 0.0, 0.0, 0.1, 1e-3, "m")
+    assert at_bound(bounded, 0.1) and at_bound(bounded, 0.0005) and not at_bound(bounded, 0.05)
+    res["selected"]["parameters"][0]["at_bound"] = True
+    assert "**at its bound**" in (write_report(res, tmp_path / "rep") / "report.md").read_text()

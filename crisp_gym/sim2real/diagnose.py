@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from tqdm import tqdm
 
-from crisp_gym.sim2real.effects import CannotApply, Effect, check_families, library
+from crisp_gym.sim2real.effects import CannotApply, Effect, Param, check_families, library
 from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
 from crisp_gym.sim2real.gap import where
 from crisp_gym.sim2real.log import RealLog
@@ -239,7 +239,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     summary = {
         "effect": chosen.combo.label, "family": chosen.combo.family,
         "parameters": [{"name": p.name, "value": float(v), "ci95": [float(a), float(b)], "unit": p.unit,
-                        "effect": e.label}
+                        "effect": e.label, "at_bound": at_bound(p, float(v))}
                        for (p, v, a, b, e) in zip(chosen.combo.params, chosen.x, lo, hi, _owners(chosen.combo))],
         "ci_method": ci_method,
         "gap_train": chosen.train_gap, "gap_heldout": chosen.heldout_gap,
@@ -274,6 +274,12 @@ def _concat_windows(a: Replayer, b: Replayer):
         raise ValueError("train and held-out windows must have the same length")
     return type(wa)(np.concatenate([wa.traj, wb.traj + len(a.trajs)]), np.concatenate([wa.start, wb.start]),
                     np.concatenate([wa.length, wb.length]), wa.pattern + wb.pattern, wa.size)
+
+
+def at_bound(param: Param, value: float) -> bool:
+    """Whether a fitted value sits at its bound (within 1 % of the range): the fit wanted more,
+    so the effect is not the right one, or its range is too narrow."""
+    return min(value - param.lo, param.hi - value) <= 0.01 * (param.hi - param.lo)
 
 
 def _fit(fitter: Fitter, combo: Combo, starts: list[np.ndarray] | None = None) -> Candidate:

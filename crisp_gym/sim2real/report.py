@@ -70,9 +70,13 @@ def _markdown(result: dict, figures: list[str]) -> str:
     if sel:
         lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
         for p in sel["parameters"]:
-            lines.append(f"| {p['effect']} | {p['name']} | {_fmt(p['value'])} | [{_fmt(p['ci95'][0])}, "
+            flag = " **at its bound**" if p.get("at_bound") else ""
+            lines.append(f"| {p['effect']} | {p['name']} | {_fmt(p['value'])}{flag} | [{_fmt(p['ci95'][0])}, "
                          f"{_fmt(p['ci95'][1])}] | {p['unit']} |")
         lines.append("")
+        if any(p.get("at_bound") for p in sel["parameters"]):
+            lines += ["A parameter at its bound means the fit wanted to go further: the effect is likely not the "
+                      "cause, or only part of it.", ""]
     w = result["where"]
     lines += ["## Where the gap lies", "", f"Worst joint: **{w['worst_joint']}**.", "",
               "| joint | RMS pos (rad) | floor | RMS vel (rad/s) | lag real vs cmd (s) | lag sim vs cmd (s) | "
