@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("train.ppo", "train a tracking policy with PPO"),
     "eval": ("train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),
     "ship": ("train.ship", "package a run for shipping: policy file, evaluation, learning curves"),
+    "view": ("train.view", "an interactive 3D viewer in the browser: a clip, its reference and a policy's rollout"),
     "gap": ("crisp_gym.sim2real.cli", "sim-to-real gap: `crisp gap diagnose` / `crisp gap bench`"),
 }
 

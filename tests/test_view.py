@@ -1,0 +1,75 @@
+"""``crisp view``: the viewer's scene follows the tracks on its timeline, and a real browser
+(headless Chromium, software WebGL) draws it."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+viser = pytest.importorskip("viser")
+
+from crisp_gym.humanoid import BODY_NAMES  # noqa: E402
+from crisp_gym.registry import load_clip  # noqa: E402
+from train.view import (  # noqa: E402
+    REFERENCE_RGB, SIMULATED_RGB, Viewer, ViewArgs, policy_and_clip, policy_track, reference_track,
+)
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def walk():
+    clip = load_clip("flat_walk")
+    policy, clip_name = policy_and_clip(ViewArgs(source="assets/policies/flat_walk"))
+    assert clip_name == "flat_walk" and policy is not None  # a policy file's own training clip
+    return clip, reference_track(clip), policy_track(policy, clip.path)
+
+
+def test_the_timeline_poses_every_humanoid_body(walk):
+    clip, reference, rollout = walk
+    assert rollout.body_pos.shape == reference.body_pos.shape  # the shipped policy tracks the whole clip
+    server = viser.ViserServer(port=_free_port(), verbose=False)
+    try:
+        viewer = Viewer(server, clip.boxes, {"reference": (reference, REFERENCE_RGB, 0.45),
+                                             "policy": (rollout, SIMULATED_RGB, 1.0)})
+        for frame in (0, 60, len(reference.body_pos) - 1):
+            viewer.slider.value = frame  # as a user drags it: the callback poses the bodies
+            for name, track in (("reference", reference), ("policy", rollout)):
+                for body in ("Pelvis", "L_Toe", "R_Hand"):
+                    handle, index = viewer.frames[name, body], BODY_NAMES.index(body)
+                    np.testing.assert_allclose(handle.position, track.body_pos[frame, index], atol=1e-6)
+                    np.testing.assert_allclose(np.abs(handle.wxyz @ track.body_quat[frame, index]), 1.0, atol=1e-6)
+    finally:
+        server.stop()
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (scripts/install.sh installs it)")
+def test_a_browser_draws_the_scene_and_the_humanoids(walk, tmp_path):
+    clip, reference, rollout = walk
+    port = _free_port()
+    server = viser.ViserServer(port=port, verbose=False)
+    try:
+        Viewer(server, clip.boxes, {"reference": (reference, REFERENCE_RGB, 0.45),
+                                    "policy": (rollout, SIMULATED_RGB, 1.0)})
+        shot = tmp_path / "view.png"
+        software_webgl = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+        subprocess.run([CHROMIUM, "--headless", "--no-sandbox", *software_webgl, "--virtual-time-budget=8000",
+                        "--window-size=1000,700", f"--screenshot={shot}", f"http://127.0.0.1:{port}"],
+                       capture_output=True, timeout=120, check=True)
+    finally:
+        server.stop()
+    image = iio.imread(shot)[..., :3].astype(int)
+    orange = (np.abs(image - SIMULATED_RGB).max(axis=-1) < 60) & (image[..., 0] > image[..., 2] + 40)
+    assert orange.sum() > 300  # the simulated humanoid is drawn (not only the page around the canvas)
+    assert image[100:600, 100:900].std() > 10
