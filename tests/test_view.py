@@ -73,3 +73,25 @@ def test_a_browser_draws_the_scene_and_the_humanoids(walk, tmp_path):
     orange = (np.abs(image - SIMULATED_RGB).max(axis=-1) < 60) & (image[..., 0] > image[..., 2] + 40)
     assert orange.sum() > 300  # the simulated humanoid is drawn (not only the page around the canvas)
     assert image[100:600, 100:900].std() > 10
+
+
+def test_the_input_point_cloud_lands_on_the_reconstructed_scene(tmp_path):
+    """``--points``: the clip's input depth, scaled and aligned as ``meta.json`` says, lies on the
+    primitives fitted to it (a wrong scale or transform would put it metres away)."""
+    from crisp_gym.clip import load_clip_dir
+    from crisp_gym.metrics import box_signed_distance
+    from reconstruct import pipeline
+    from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
+    from train.view import input_points
+
+    video = render_synth_video(SynthSpec("stairs_up", seed=3), SynthVideoConfig(width=160, height=120), progress=False)
+    source = write_synth_input(tmp_path / "input", video)
+    out = pipeline.run(pipeline.ReconstructArgs(input=source / "input.npz", motion=source / "motion_camera.npz",
+                                                output=tmp_path / "clip", contacts="none"))
+    clip = load_clip_dir(out)
+    points = input_points(clip, max_points=5000)
+    assert points.shape == (5000, 3)
+    path = clip.motion.root_pos[:, :2]  # the fit keeps what lies within 2.5 m of the person's path
+    close = np.min(np.linalg.norm(points[:, None, :2] - path[None], axis=-1), axis=1) < 2.0
+    distance = np.abs(box_signed_distance(points[close], clip.boxes))
+    assert close.mean() > 0.3 and np.median(distance) < 0.03
