@@ -84,6 +84,7 @@ def body_meshes(model: mujoco.MjModel) -> dict[str, trimesh.Trimesh]:
 
 
 def reference_track(clip: Clip) -> Track:
+    """The clip's reference motion as body poses (forward kinematics on the default humanoid)."""
     kin = compute_kinematics(clip.motion, build_humanoid())
     return Track(kin.body_pos, kin.body_quat)
 
