@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth-clips": ("reconstruct.synth", "regenerate the bundled synthetic clips, or make one more (--kind, --seed)"),
     "synth": ("reconstruct.synth_video", "render a synthetic depth video with ground truth"),
     "reconstruct": ("reconstruct.pipeline", "reconstruct a clip from a depth video and a human motion"),
+    "reconstruct-all": ("reconstruct.batch", "reconstruct every input of a folder as its own clip, in parallel on Ray"),
     "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),
     "train": ("train.ppo", "train a tracking policy with PPO"),
     "eval": ("train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),
