@@ -599,3 +599,20 @@ def test_an_unknown_logger_is_named() -> None:
 
     with pytest.raises(ValueError, match=r"unknown loggers \['neptune'\]; TorchRL's are csv, tensorboard"):
         TrainConfig(loggers=("neptune",))
+
+
+def test_collection_on_two_ray_workers_trains_with_their_frames(clip_dir: Path, tmp_path: Path) -> None:
+    """``--ray-workers 2``: TorchRL's RayCollector on a local Ray cluster of two workers, each with
+    its own batched env; an iteration has both workers' frames, the losses are finite, and the
+    checkpoint resumes like any other."""
+    pytest.importorskip("ray")
+    from train.ppo import load_checkpoint, train
+
+    cfg = _tiny_config(clip_dir, tmp_path / "run", frames=4 * 2 * 16 * 8, num_envs=16, steps_per_env=8,
+                       minibatch_size=64, ray_workers=2)
+    result = train(cfg)
+    assert result.iteration == 4 and result.frames == 4 * 2 * 16 * 8
+    rows = list(csv.DictReader(open(tmp_path / "run" / "progress.csv")))
+    assert all(int(b["frames"]) - int(a["frames"]) == 2 * 16 * 8 for a, b in zip(rows, rows[1:]))
+    assert all(np.isfinite(float(r["loss_critic"])) for r in rows[1:])
+    assert load_checkpoint(tmp_path / "run")["frames"] == result.frames

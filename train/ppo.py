@@ -39,6 +39,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -127,6 +128,12 @@ class TrainConfig:
             (0.01–0.02 later), and a 97 %-success policy fell to 44 % within 0.5 M frames.
         resume: continue from ``output/checkpoint.pt``.
         progress: show a progress bar.
+        ray_workers: collect on this many Ray workers, each with its own batched env of
+            ``num_envs`` simulations (an iteration then has ``ray_workers`` times the frames);
+            0: in this process. Each worker's env keeps its own adaptive start sampler, so
+            ``start_failures/*`` in ``progress.csv`` and the checkpoint stay empty.
+        ray_address: a Ray cluster to collect on (``auto``, ``ray://HEAD:10001``); default: a local
+            one of ``ray_workers`` cores.
         loggers: experiment trackers that also get every ``progress.csv`` scalar (step: frames),
             through ``torchrl.record.loggers``: ``csv``, ``tensorboard``, ``wandb``, ``mlflow``
             (the last three need their package: ``pip install 'crisp-gym[tracking]'`` has
@@ -170,6 +177,8 @@ class TrainConfig:
     resume: bool = False
     progress: bool = True
     loggers: tuple[str, ...] = ()
+    ray_workers: int = 0
+    ray_address: str | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.clip, (str, os.PathLike)):  # one clip, as configs before motion libraries held it
@@ -192,6 +201,8 @@ class TrainConfig:
             raise ValueError("eval_every, critic_warmup and actor_lr_warmup must be non-negative")
         if self.until_success is not None and not (0 < self.until_success <= 1 and self.eval_every > 0):
             raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
+        if self.ray_workers < 0 or (self.ray_address is not None and not self.ray_workers):
+            raise ValueError("ray_workers must be at least 0, and ray_address needs ray_workers > 0")
         unknown = [name for name in self.loggers if name not in LOGGERS]
         if unknown:
             raise ValueError(f"unknown loggers {unknown}; TorchRL's are {', '.join(LOGGERS)}")
@@ -755,6 +766,34 @@ def episode_stats(data: TensorDictBase) -> dict[str, float]:
     }
 
 
+def _collector(cfg: TrainConfig, env: Any, env_fn: Callable[[TrainConfig, int], Any], agent: Agent,
+               device: torch.device, iteration: int) -> Any:
+    """TorchRL's ``Collector`` over ``env`` in this process, or with ``cfg.ray_workers`` its
+    ``RayCollector``: one env per worker (from ``env_fn``), the policy's weights (observation
+    statistics included) sent to every worker after each update."""
+    if not cfg.ray_workers:
+        from torchrl.collectors import Collector  # noqa: PLC0415
+
+        return Collector(env, agent.policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1,
+                         env_device="cpu", policy_device=device, storing_device=device,
+                         auto_register_policy_transforms=False)
+    try:
+        import ray  # noqa: F401, PLC0415 - RayCollector imports it lazily, too late for a clear error
+        from torchrl.collectors.distributed import RayCollector  # noqa: PLC0415
+    except ModuleNotFoundError:
+        raise ModuleNotFoundError("--ray-workers needs Ray: pip install 'crisp-gym[scale]'") from None
+    cluster = {"address": cfg.ray_address} if cfg.ray_address else {"num_cpus": cfg.ray_workers}
+    collector = RayCollector(
+        [partial(env_fn, cfg, cfg.seed + 1000 * iteration + 1 + k) for k in range(cfg.ray_workers)],
+        policy=agent.policy, frames_per_batch=cfg.ray_workers * cfg.frames_per_iteration,
+        total_frames=2**62,  # the run stops on its own frame count
+        sync=True, num_collectors=cfg.ray_workers,
+        ray_init_config=cluster | {"include_dashboard": False, "log_to_driver": False},
+        collector_kwargs={"env_device": "cpu", "policy_device": "cpu", "storing_device": "cpu"})
+    collector.update_policy_weights_()
+    return collector
+
+
 def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = None) -> TrainResult:
     """Train (or, with ``cfg.resume``, continue training) a tracking policy; see the module docstring.
 
@@ -763,7 +802,6 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         env_fn: builds the TorchRL env from (config, seed); default :func:`make_env`. Profiling
             passes an instrumented env here.
     """
-    from torchrl.collectors import Collector
     from torchrl.objectives import ClipPPOLoss
     from torchrl.objectives.value import GAE
 
@@ -823,9 +861,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     critic_only_until = cfg.critic_warmup if warm is not None and "critic" not in warm else 0
     ramp = cfg.actor_lr_warmup if warm is not None else 0
 
-    collector = Collector(env, agent.policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1,
-                          env_device="cpu", policy_device=device, storing_device=device,
-                          auto_register_policy_transforms=False)
+    collector = _collector(cfg, env, env_fn or make_env, agent, device, iteration)
     clip_names = env.vec_env.task.clip_names
     sampler = env.vec_env.start_sampler
     best_score = evaluation_score_of(load_checkpoint(out / BEST_NAME)) if (out / BEST_NAME).is_file() else -math.inf
@@ -858,7 +894,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 # one step's forward pass is too small to split across threads: with two
                 # threads on a busy 2-core machine it took 5x as long as with one
                 torch.set_num_threads(1)
-            data = next(batches)  # (num_envs, steps_per_env)
+            data = next(batches)  # (num_envs, steps_per_env); on Ray (workers, num_envs, steps_per_env)
+            if cfg.ray_workers:
+                data = data.reshape(-1, data.shape[-1])
             torch.set_num_threads(update_threads)
             collect_s = time.perf_counter() - collect_start
             env_s = env.env_time - env_before
