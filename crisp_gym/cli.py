@@ -36,7 +36,8 @@ not a fault of the program."""
 
 def _usage() -> str:
     lines = ["usage: crisp [--debug] COMMAND [ARGS...]", "", "commands:"]
-    lines += [f"  {name:<14} {help_}" for name, (_, help_) in COMMANDS.items()]
+    width = max(map(len, COMMANDS)) + 1
+    lines += [f"  {name:<{width}} {help_}" for name, (_, help_) in COMMANDS.items()]
     lines += ["", "`crisp COMMAND --help` describes a command's options; `--debug` shows tracebacks of errors."]
     return "\n".join(lines)
 
