@@ -237,3 +237,18 @@ def test_fitted_parameters_at_their_bounds_are_flagged(tmp_path):
     assert at_bound(bounded, 0.1) and at_bound(bounded, 0.0005) and not at_bound(bounded, 0.05)
     res["selected"]["parameters"][0]["at_bound"] = True
     assert "**at its bound**" in (write_report(res, tmp_path / "rep") / "report.md").read_text()
+
+
+def test_a_delay_on_one_drive_is_found_on_that_drive():
+    """Delay existed only shared by every drive: a single slow servo (here the left hip's flexion,
+    40 ms) now is a candidate of its own, and it wins over the shared delay with its value."""
+    sc = scenario("humanoid", BenchConfig())
+    rng = np.random.default_rng(3)
+    t, u1 = commands(sc, rng)
+    _, u2 = commands(sc, rng)
+    truth = {"family": "delay", "effect": "actuator_delay", "joint": "L_Hip_y", "x": [0.04], "x0": [0.01]}
+    train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
+    res = diagnose([(train, sc.model)], [(test, sc.model)], replace(CFG, families=("delay",)))
+    assert res["verdict"] == "explained" and res["selected"]["effect"] == "actuator_delay[L_Hip_y]"
+    (delay,) = res["selected"]["parameters"]
+    assert delay["ci95"][0] <= 0.04 <= delay["ci95"][1] and abs(delay["value"] - 0.04) < 0.01

@@ -194,9 +194,10 @@ def _shift(signal: np.ndarray, shift: float) -> np.ndarray:
 
 
 class ActuatorDelay(Effect):
-    """Commands reach the actuators ``delay`` seconds late (bus, filtering, firmware)."""
+    """Commands reach the actuators ``delay`` seconds late (bus, filtering, firmware): all of
+    them, or (confined to a joint) only the drives of that joint, as one slow servo on a bus."""
 
-    name, family, per_joint_allowed = "actuator_delay", "delay", False
+    name, family, per_joint_allowed, focus_allowed = "actuator_delay", "delay", False, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("delay", 0.01, 0.0, 0.15, 0.25 * tr.log.dt, "s")]
@@ -205,8 +206,13 @@ class ActuatorDelay(Effect):
         return [np.array([d]) for d in (0.004, 0.012, 0.025, 0.045, 0.07, 0.1)]
 
     def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
-        h = tr.log.dt / tr.nsub
-        return Signals(_shift(sig.ctrl, x[0] / h), sig.qpos, sig.qvel)
+        delayed = _shift(sig.ctrl, x[0] * tr.nsub / tr.log.dt)
+        if self.joints is None:
+            return Signals(delayed, sig.qpos, sig.qvel)
+        drives = np.concatenate(self.actuators_of(tr, self.columns(tr)))
+        ctrl = sig.ctrl.copy()
+        ctrl[:, drives] = delayed[:, drives]
+        return Signals(ctrl, sig.qpos, sig.qvel)
 
 
 class SensorDelay(Effect):
