@@ -172,9 +172,3 @@ def write_text(path: str | Path, text: str) -> Path:
         tmp.write_text(text)
     return Path(path)
 
-
-def write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically; returns ``path``."""
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
