@@ -51,6 +51,7 @@ from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.motion import Motion, hinge_angles_to_rotations
 from crisp_gym.npz import read_npz
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS, load_smpl_params
+from reconstruct.body_mesh import pixel_rays
 from reconstruct.frames import Frames
 
 log = logging.getLogger(__name__)
@@ -307,11 +308,9 @@ def depth_agreement(depth: np.ndarray, intrinsic: np.ndarray, cam_c2w: np.ndarra
     moved by the poses ``cam_c2w``, the share whose depth there agrees within ``tolerance``
     (relative): near 1 for right poses, low for wrong ones."""
     h, w = depth.shape[1:]
-    v, u = np.mgrid[0:h:stride, 0:w:stride]
     z = depth[k, ::stride, ::stride]
     valid = z > 0
-    rays = np.stack([(u - intrinsic[0, 2]) / intrinsic[0, 0], (v - intrinsic[1, 2]) / intrinsic[1, 1],
-                     np.ones_like(z, dtype=float)], axis=-1)[valid] * z[valid, None]
+    rays = pixel_rays(intrinsic, w, h)[::stride, ::stride][valid] * z[valid, None]
     j_from_k = np.linalg.inv(cam_c2w[j]) @ cam_c2w[k]
     cam = rays @ j_from_k[:3, :3].T + j_from_k[:3, 3]
     front = cam[:, 2] > 1e-3
