@@ -21,7 +21,6 @@ under :data:`MAX_ORIENTATION_ERROR_DEG`), which checks the conventions above on 
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
+from crisp_gym.torch_file import load_tensors
 
 REQUIRED = ("dof_pos", "rigid_body_pos", "rigid_body_rot", "fps")
 MAX_ORIENTATION_ERROR_DEG = 2.0
@@ -43,17 +43,10 @@ def _array(value) -> np.ndarray:
 
 def read_protomotions(path: str | Path) -> Motion:
     """The :class:`Motion` of a ProtoMotions ``.motion`` file (see the module docstring)."""
-    import torch  # noqa: PLC0415 - only this reader needs it
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no motion file at {path}")
-    try:
-        content = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        raise ValueError(f"{path} is not a torch file of tensors and plain values (corrupt, or not ours)") from None
-    except (RuntimeError, EOFError, OSError) as err:
-        raise ValueError(f"{path} is not a readable torch file ({err})") from None
+    content = load_tensors(path)
     if not isinstance(content, dict) or not set(REQUIRED) <= set(content):
         found = sorted(content) if isinstance(content, dict) else type(content).__name__
         raise ValueError(f"{path} is not a ProtoMotions motion: expected a dict with {list(REQUIRED)}, got {found}")

@@ -32,7 +32,6 @@ import csv
 import json
 import math
 import os
-import pickle
 import signal
 import sys
 import threading
@@ -52,7 +51,8 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from crisp_gym.atomic import atomic_path, write_text
-from crisp_gym.file_errors import CONTENT_ERRORS, reading
+from crisp_gym.file_errors import reading
+from crisp_gym.torch_file import load_tensors
 from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -423,18 +423,6 @@ def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optim
     return path
 
 
-def _load_file(path: Path) -> Any:
-    """``torch.load`` of tensors and plain values only; a file it cannot read is a ValueError naming it."""
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:  # garbage, or objects that only running pickled code would make
-        raise ValueError(f"{path} is not a torch file of tensors and plain values (corrupt, or not ours)") from None
-    # e.g. a truncated zip archive; a damaged pickle stream fails in the unpickler's own ways
-    except (RuntimeError, EOFError, OSError, ValueError, *CONTENT_ERRORS) as err:
-        reason = str(err).strip().split(". ")[0] if str(err).strip() else type(err).__name__
-        raise ValueError(f"{path} is not a readable torch file ({reason})") from None
-
-
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """A checkpoint's contents (tensors and plain Python values only)."""
     path = Path(path)
@@ -442,7 +430,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         path = path / CHECKPOINT_NAME
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    state = _load_file(path)
+    state = load_tensors(path)
     if not isinstance(state, dict) or state.get("format_version") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a version-{CHECKPOINT_FORMAT} crisp-gym training checkpoint")
     return state
@@ -486,7 +474,7 @@ def _read_policy_source(path: str | Path) -> tuple[Path, dict[str, Any]]:
     if not path.is_file():
         raise FileNotFoundError(f"no policy at {path}: expected a run directory, a {CHECKPOINT_NAME} "
                                 f"or a {POLICY_NAME}")
-    state = _load_file(path)
+    state = load_tensors(path)
     if not isinstance(state, dict) or not (
             state.get("kind") == "policy" and state.get("format_version") == POLICY_FORMAT
             or state.get("format_version") == CHECKPOINT_FORMAT and "critic" in state):
