@@ -57,12 +57,15 @@ def _read(path: Path) -> dict[str, dict]:
         if not isinstance(name, str) or not _CLIP_NAME.fullmatch(name):
             raise ValueError(f"{path}: {name!r} is not a plain clip name (a letter, digit or '_', then also "
                              f"'.', '+', '-')")
-        if not isinstance(entry, dict) or "path" not in entry:
-            raise ValueError(f"{path}: clip {name!r} needs a 'path'")
+        if not isinstance(entry, dict) or not isinstance(entry.get("path"), str):
+            raise ValueError(f"{path}: clip {name!r} needs a 'path' (a folder)")
+        tags = entry.get("tags", [])
+        if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
+            raise ValueError(f"{path}: the tags of clip {name!r} must be a list of words, got {tags!r}")
         clip_path = Path(entry["path"]).expanduser()
         if not clip_path.is_absolute():
             clip_path = path.parent / clip_path
-        entries[str(name)] = {"path": clip_path, "tags": list(entry.get("tags", []))}
+        entries[str(name)] = {"path": clip_path, "tags": tags}
     return entries
 
 
