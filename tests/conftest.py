@@ -15,6 +15,7 @@ from crisp_gym.clip import write_clip  # noqa: E402
 from crisp_gym.humanoid import DOF_NAMES, build_humanoid  # noqa: E402
 from crisp_gym.motion import Motion, ground  # noqa: E402
 from crisp_gym.scene import Box, floor_box  # noqa: E402
+from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -44,3 +45,10 @@ def sway_clip(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("clips") / "sway"
     boxes = [floor_box(), Box(center=[1.0, 0.8, 0.1], half_size=[0.3, 0.3, 0.1])]
     return write_clip(path, boxes, sway_motion(), {"source": "test"})
+
+
+def small_synth_input(directory: Path, kind: str, seed: int) -> Path:
+    """A 160 x 120 synthetic depth video of a ``kind`` clip with its camera-frame motion, written
+    as ``crisp reconstruct`` reads it (``input.npz``, ``motion_camera.npz``) into ``directory``."""
+    video = render_synth_video(SynthSpec(kind, seed=seed), SynthVideoConfig(width=160, height=120), progress=False)
+    return write_synth_input(directory, video)

@@ -12,14 +12,13 @@ pytest.importorskip("ray")
 from crisp_gym.clip import load_clip_dir  # noqa: E402
 from crisp_gym.registry import list_clips  # noqa: E402
 from reconstruct import batch, pipeline  # noqa: E402
-from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input  # noqa: E402
+from tests.conftest import small_synth_input  # noqa: E402
 
 
 def test_a_folder_of_inputs_becomes_clips_on_two_ray_workers(tmp_path, capsys):
     inputs = tmp_path / "inputs"
     for kind, seed in (("platform_step", 5), ("stairs_up", 3)):
-        video = render_synth_video(SynthSpec(kind, seed=seed), SynthVideoConfig(width=160, height=120), progress=False)
-        write_synth_input(inputs / kind, video)
+        small_synth_input(inputs / kind, kind, seed)
     (inputs / "broken").mkdir()
     (inputs / "broken" / "input.npz").write_bytes(b"not an archive")
     assert [name for name, _, _ in batch.find_inputs(inputs)] == ["broken", "platform_step", "stairs_up"]

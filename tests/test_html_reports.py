@@ -13,11 +13,11 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from crisp_gym.sim2real.bench import BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.report import write_report
 from reconstruct import pipeline
-from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
+from tests.conftest import small_synth_input
+from tests.test_sim2real_diagnose import _case as servo_case
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (scripts/install.sh installs it)")
@@ -68,9 +68,7 @@ def test_eval_page_shows_its_plots_and_rollout(tmp_path):
 
 
 def test_reconstruct_page_shows_the_clip(tmp_path):
-    video = render_synth_video(SynthSpec("platform_step", seed=5), SynthVideoConfig(width=160, height=120),
-                               progress=False)
-    source = write_synth_input(tmp_path / "input", video)
+    source = small_synth_input(tmp_path / "input", "platform_step", 5)
     out = pipeline.run(pipeline.ReconstructArgs(input=source / "input.npz", motion=source / "motion_camera.npz",
                                                 output=tmp_path / "clip"))
     counts, crops = open_in_browser(out / "report.html", tmp_path)
@@ -80,12 +78,8 @@ def test_reconstruct_page_shows_the_clip(tmp_path):
 
 
 def test_gap_page_shows_the_diagnosis_and_its_plots(tmp_path):
-    sc = scenario("servo", BenchConfig())
-    rng = np.random.default_rng(5)
-    t, u1 = commands(sc, rng)
-    _, u2 = commands(sc, rng)
     truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.02], "x0": [0.01]}
-    train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
+    sc, train, test = servo_case(truth, seed=5)
     result = diagnose([(train, sc.model)], [(test, sc.model)], DiagnoseConfig(show_progress=False))
     out = write_report(result, tmp_path / "gap")
     counts, crops = open_in_browser(out / "report.html", tmp_path)

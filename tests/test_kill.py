@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from crisp_gym.clip import load_clip_dir
-from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
+from tests.conftest import small_synth_input
 
 REPO = Path(__file__).resolve().parents[1]
 CRISP = [sys.executable, "-m", "crisp_gym.cli"]
@@ -121,9 +121,7 @@ def test_export_killed_keeps_a_whole_export(tmp_path, kills):
 
 @pytest.fixture(scope="module")
 def small_video_input(tmp_path_factory) -> Path:
-    video = render_synth_video(SynthSpec("platform_step", seed=5), SynthVideoConfig(width=160, height=120),
-                               progress=False)
-    return write_synth_input(tmp_path_factory.mktemp("synth") / "platform", video)
+    return small_synth_input(tmp_path_factory.mktemp("synth") / "platform", "platform_step", 5)
 
 
 @KILLS

@@ -81,11 +81,10 @@ def test_the_input_point_cloud_lands_on_the_reconstructed_scene(tmp_path):
     from crisp_gym.clip import load_clip_dir
     from crisp_gym.metrics import box_signed_distance
     from reconstruct import pipeline
-    from reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
+    from tests.conftest import small_synth_input
     from train.view import input_points
 
-    video = render_synth_video(SynthSpec("stairs_up", seed=3), SynthVideoConfig(width=160, height=120), progress=False)
-    source = write_synth_input(tmp_path / "input", video)
+    source = small_synth_input(tmp_path / "input", "stairs_up", 3)
     out = pipeline.run(pipeline.ReconstructArgs(input=source / "input.npz", motion=source / "motion_camera.npz",
                                                 output=tmp_path / "clip", contacts="none"))
     clip = load_clip_dir(out)
