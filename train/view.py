@@ -201,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     if policy is not None:
         tracks["policy"] = (policy_track(policy, clip.path), SIMULATED_RGB, 1.0)
     points = input_points(clip, args.max_points) if args.points else None
+    if args.points and points is None:
+        print(f"crisp view: {clip.name} has no depth input to show (--points needs a clip reconstructed from an npz or "
+              "RGB-D folder whose meta.json names it and its alignment)")
     server = viser.ViserServer(port=args.port, verbose=False)
     viewer = Viewer(server, clip.boxes, tracks, points)
     print(f"crisp view: {clip.name} at http://localhost:{args.port} (Ctrl-C stops)")
