@@ -2,13 +2,13 @@
 
     python benchmarks/planes_speed.py --index 0     # 300 frames, 512x384, the suite's first video
 
-The input is a video of the synthetic benchmark suite (:func:`reconstruct.synth_video.benchmark_suite`:
+The input is a video of the synthetic benchmark suite (:func:`crisp_gym.reconstruct.synth_video.benchmark_suite`:
 stairs up, a platform, a seat, stairs down in turn, with background boxes, a moving handheld
 camera, monocular-like depth noise), rendered with 300 frames at 512x384 and brought to metres
 and the true world frame with its ground truth, person pixels removed, so that only planar
 fitting is measured (alignment is not).
 
-* **ours**: :func:`reconstruct.planes.fit_planes` end to end on all frames, with the pelvis path;
+* **ours**: :func:`crisp_gym.reconstruct.planes.fit_planes` end to end on all frames, with the pelvis path;
   per-frame time = total / frames.
 * **Open3D**: per frame, ``estimate_normals`` (30 nearest neighbours; the patch detector needs
   normals) + ``detect_planar_patches`` (its documented defaults), on the frame's points after the
@@ -36,9 +36,9 @@ from tqdm import tqdm
 
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.scene import Box
-from reconstruct.frames import Frames
-from reconstruct.planes import PlaneFitConfig, fit_planes
-from reconstruct.synth_video import SynthVideoConfig, benchmark_suite, render_synth_video
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.planes import PlaneFitConfig, fit_planes
+from crisp_gym.reconstruct.synth_video import SynthVideoConfig, benchmark_suite, render_synth_video
 
 PLANE_COSINE = np.cos(np.radians(18.0))
 PLANE_OFFSET = 0.05

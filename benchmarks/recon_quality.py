@@ -4,7 +4,7 @@
     python benchmarks/recon_quality.py --contact-ablation --seeds 6 --out results/contact_ablation
 
 Each case renders a synthetic video (noisy monocular-like depth, unknown scale and gravity, a
-moving camera; :mod:`reconstruct.synth_video`), writes it as ``crisp reconstruct`` input, reads it
+moving camera; :mod:`crisp_gym.reconstruct.synth_video`), writes it as ``crisp reconstruct`` input, reads it
 back and runs the pipeline. The reconstruction is compared with the ground truth after the only
 transform the pipeline is free to choose: the world's heading and horizontal origin, fitted on the
 human's pelvis path (scale, gravity and floor height errors stay in the numbers).
@@ -33,9 +33,9 @@ from tqdm import tqdm
 
 from crisp_gym.metrics import support_tops
 from crisp_gym.scene import Box
-from reconstruct.baselines import TsdfConfig, tsdf_mesh
-from reconstruct.io import read_frames, read_motion
-from reconstruct.metrics import (
+from crisp_gym.reconstruct.baselines import TsdfConfig, tsdf_mesh
+from crisp_gym.reconstruct.io import read_frames, read_motion
+from crisp_gym.reconstruct.metrics import (
     chamfer_gt_to_recon,
     chamfer_recon_to_gt,
     heading_alignment,
@@ -43,8 +43,8 @@ from reconstruct.metrics import (
     primitive_count,
     support_coverage,
 )
-from reconstruct.pipeline import Reconstruction, reconstruct
-from reconstruct.synth_video import (
+from crisp_gym.reconstruct.pipeline import Reconstruction, reconstruct
+from crisp_gym.reconstruct.synth_video import (
     SynthSpec,
     SynthVideoConfig,
     benchmark_suite,

@@ -33,8 +33,8 @@ import tyro
 from scipy.spatial import cKDTree
 
 from crisp_gym.metrics import box_signed_distance
-from reconstruct.io import RgbdFolderConfig, read_frames
-from reconstruct.pipeline import reconstruct
+from crisp_gym.reconstruct.io import RgbdFolderConfig, read_frames
+from crisp_gym.reconstruct.pipeline import reconstruct
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "slambook2_rgbd"
 

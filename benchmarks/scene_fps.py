@@ -2,7 +2,7 @@
 
 The clip's box scene is rendered into depth from cameras walking along both sides of the
 motion's path, fused into a TSDF mesh and turned into a heightfield and convex pieces
-(``reconstruct.baselines``), and, as an unfaithful reference, the raw mesh as one geom. The
+(``crisp_gym.reconstruct.baselines``), and, as an unfaithful reference, the raw mesh as one geom. The
 same reference motion is then tracked in the batched ``CrispTrack-v0`` on each scene: PD toward
 the reference (zero residual actions), reference state init on every reset, so all scenes do the
 same work. Scenes are measured in interleaved rounds so load changes hit them alike; the table
@@ -28,9 +28,9 @@ import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
 from crisp_gym.clip import Clip
 from crisp_gym.envs.track_vector import CrispTrackVectorEnv
 from crisp_gym.registry import load_clip
-from reconstruct.baselines import ColliderConfig, TsdfConfig, write_baseline_clips
-from reconstruct.frames import Frames
-from reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.baselines import ColliderConfig, TsdfConfig, write_baseline_clips
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
 
 
 @dataclass(frozen=True)

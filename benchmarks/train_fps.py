@@ -1,6 +1,6 @@
 """End-to-end PPO training throughput, scene-blind and scene-aware, and where the time goes.
 
-Each variant runs :func:`train.ppo.train` for ``--warmup`` iterations (not counted; they
+Each variant runs :func:`crisp_gym.train.ppo.train` for ``--warmup`` iterations (not counted; they
 include the normaliser-only first batch), then for enough iterations to collect ``--frames``
 frames, and splits the wall-clock time of the measured iterations into:
 
@@ -29,8 +29,8 @@ import torch
 import tyro
 
 from crisp_gym.registry import resolve_clip
-from train.models import ModelConfig
-from train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
+from crisp_gym.train.models import ModelConfig
+from crisp_gym.train.ppo import TrainConfig, cpu_profile, make_env, paper_profile, train
 
 BASELINE = {"num_envs": 64, "steps_per_env": 128, "minibatch_size": 8192, "epochs": 2, "scene_aware": False,
             "torch_threads": 0,

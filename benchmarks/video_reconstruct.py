@@ -35,9 +35,9 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import sole_points, support_tops
 from crisp_gym.motion import compute_kinematics, planted_feet
-from reconstruct.io import read_video
-from reconstruct.pipeline import ReconstructArgs, run
-from reconstruct.video import seated_underside
+from crisp_gym.reconstruct.io import read_video
+from crisp_gym.reconstruct.pipeline import ReconstructArgs, run
+from crisp_gym.reconstruct.video import seated_underside
 
 VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "videomimic_sitting"
 FPS = 15.0

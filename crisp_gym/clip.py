@@ -22,7 +22,7 @@ from crisp_gym.scene import Box, load_primitives, save_primitives, write_scene_x
 CLIP_FILES = ("scene.xml", "motion.npz", "primitives.json", "meta.json")
 SCENE_KINDS = ("boxes", "heightfield", "convex_pieces", "dense_mesh")
 """``meta.json["scene_kind"]``: what ``scene.xml`` holds (absent means ``"boxes"``). Only box
-scenes have primitives; the others (``reconstruct.baselines``) bring their geometry in
+scenes have primitives; the others (``crisp_gym.reconstruct.baselines``) bring their geometry in
 ``scene.xml`` and the files it references, inside the clip directory."""
 
 

@@ -69,8 +69,8 @@ def shipped_policy(clip: str) -> Path | None:
 
 def run_demo(args: DemoArgs) -> dict[str, Any]:
     """Evaluate, write the outputs and return the report."""
-    from train.evaluate import evaluate_policy, torch_policy, write_outputs, zero_policy
-    from train.ppo import load_policy, policy_training_stats
+    from crisp_gym.train.evaluate import evaluate_policy, torch_policy, write_outputs, zero_policy
+    from crisp_gym.train.ppo import load_policy, policy_training_stats
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")

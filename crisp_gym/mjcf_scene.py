@@ -2,7 +2,7 @@
 
 Box clips are composed from their primitives (:func:`crisp_gym.scene.add_boxes`). A clip whose
 ``scene_kind`` is another (:data:`crisp_gym.clip.SCENE_KINDS`, e.g. the TSDF baselines of
-``reconstruct.baselines``) brings its geometry in ``scene.xml`` and the files it references;
+``crisp_gym.reconstruct.baselines``) brings its geometry in ``scene.xml`` and the files it references;
 :func:`attach_scene` copies it into a model spec (with the scene's collision bits), and
 :func:`scene_surface` gives its surface as triangles, to sample scene-aware observations from.
 """

@@ -1,7 +1,7 @@
 """From per-body world rotations to a humanoid motion a body can stand on.
 
 Every retargeter (BVH rotations in :mod:`crisp_gym.bvh`, video landmarks in
-:mod:`reconstruct.landmarks`) first finds each of the 24 bodies' world orientation and the
+:mod:`crisp_gym.reconstruct.landmarks`) first finds each of the 24 bodies' world orientation and the
 pelvis position per frame; what follows is shared: local hinge angles, the noisy hands
 low-passed, planted feet laid flat (:func:`~crisp_gym.motion.level_feet`), hinges clipped into
 the humanoid's ranges, and the planted feet put on the floor frame by frame

@@ -38,9 +38,9 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics, foot_sole_heights
-from reconstruct.body_mesh import BodyMesher, cast_mesh
-from reconstruct.frames import Frames
-from reconstruct.io import MotionInput
+from crisp_gym.reconstruct.body_mesh import BodyMesher, cast_mesh
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.io import MotionInput
 
 
 @dataclass(frozen=True)
@@ -472,7 +472,7 @@ def align(frames: Frames, motion: MotionInput | None = None, config: AlignConfig
           metric: bool = False) -> AlignResult:
     """Bring ``frames`` (and ``motion``) into a metric, gravity-aligned world with the floor at z = 0.
 
-    With a camera-frame ``motion`` (see :class:`reconstruct.io.MotionInput`) the scale comes from
+    With a camera-frame ``motion`` (see :class:`crisp_gym.reconstruct.io.MotionInput`) the scale comes from
     the person (unless ``metric``: the depth is trusted as metres) and the person's up direction
     picks the floor. Without one, ``metric=True`` is required and the cameras' image-up picks it.
     """

@@ -23,8 +23,8 @@ import tyro
 from tqdm.auto import tqdm
 
 from crisp_gym.registry import register_clip
-from reconstruct.io import VIDEO_SUFFIXES, is_plain_video
-from reconstruct.pipeline import ReconstructArgs, run
+from crisp_gym.reconstruct.io import VIDEO_SUFFIXES, is_plain_video
+from crisp_gym.reconstruct.pipeline import ReconstructArgs, run
 
 _MOTION_FILES = ("motion_camera.npz", "motion.npz")
 

@@ -1,4 +1,4 @@
-"""Reconstruction inputs: depth videos as :class:`~reconstruct.frames.Frames`, and the human motion.
+"""Reconstruction inputs: depth videos as :class:`~crisp_gym.reconstruct.frames.Frames`, and the human motion.
 
 Depth videos (:func:`read_frames` picks the reader from the path):
 
@@ -26,7 +26,7 @@ GVHMR-style SMPL parameters (``global_orient``, ``body_pose`` (63 or 69), ``tran
 GVHMR's ``.pt`` results with ``smpl_params_incam``) are in the camera frame: OpenCV axes
 (x right, y down, z forward), metres, frame ``t`` in camera ``t``'s frame as GVHMR's
 ``smpl_params_incam`` are (``frame="camera0"`` reads them as all in the first camera's frame
-instead). :mod:`reconstruct.align` brings a camera-frame motion into the world.
+instead). :mod:`crisp_gym.reconstruct.align` brings a camera-frame motion into the world.
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.motion import Motion, hinge_angles_to_rotations
 from crisp_gym.npz import read_npz
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS, load_smpl_params
-from reconstruct.body_mesh import pixel_rays
-from reconstruct.frames import Frames
+from crisp_gym.reconstruct.body_mesh import pixel_rays
+from crisp_gym.reconstruct.frames import Frames
 
 log = logging.getLogger(__name__)
 

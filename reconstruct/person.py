@@ -4,8 +4,8 @@ MediaPipe 0.10.21 is the last release whose wheel holds its pose and segmentatio
 ones download them on first use, which this project never does). It needs protobuf < 5, and the
 test and export extras' onnx needs protobuf >= 6, so both cannot share one environment. It is
 installed instead into a private folder (:func:`runtime_dir`, by :func:`install_runtime` or
-``python -m reconstruct.person --install``, which ``scripts/install.sh`` runs) and the tracking
-runs in a child process with that folder first on its path (:mod:`reconstruct.person_worker`).
+``python -m crisp_gym.reconstruct.person --install``, which ``scripts/install.sh`` runs) and the tracking
+runs in a child process with that folder first on its path (:mod:`crisp_gym.reconstruct.person_worker`).
 Its wheel declares ``numpy<2``; it runs on numpy 2 (measured: same landmarks), so only
 MediaPipe itself and a protobuf 4 go into the folder.
 
@@ -90,7 +90,7 @@ def install_runtime(force: bool = False) -> Path:
 
 def _missing_runtime_message() -> str:
     return (f"the video path needs MediaPipe {MEDIAPIPE_VERSION} in its private folder {runtime_dir()}: run "
-            f"`python -m reconstruct.person --install` (or scripts/install.sh), and `pip install crisp-gym[video]`")
+            f"`python -m crisp_gym.reconstruct.person --install` (or scripts/install.sh), and `pip install crisp-gym[video]`")
 
 
 def track_person(frames: np.ndarray, progress: bool = True) -> PersonTrack:
@@ -104,9 +104,8 @@ def track_person(frames: np.ndarray, progress: bool = True) -> PersonTrack:
         frames_path, out_path = Path(tmp) / "frames.npy", Path(tmp) / "person.npz"
         np.save(frames_path, frames)
         env = _worker_env()
-        command = [sys.executable, "-m", "reconstruct.person_worker", str(frames_path), str(out_path)]
-        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                              cwd=Path(__file__).resolve().parents[1]) as proc, \
+        command = [sys.executable, "-m", "crisp_gym.reconstruct.person_worker", str(frames_path), str(out_path)]
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) as proc, \
                 tqdm(total=len(frames), desc="person", unit="frame", disable=not progress) as bar:
             for line in proc.stdout:
                 done = line.split()[:1]
@@ -123,7 +122,7 @@ def track_person(frames: np.ndarray, progress: bool = True) -> PersonTrack:
 
 def _worker_env() -> dict[str, str]:
     env = dict(os.environ)
-    paths = [str(runtime_dir()), str(Path(__file__).resolve().parents[1])]
+    paths = [str(runtime_dir())]
     if env.get("PYTHONPATH"):
         paths.append(env["PYTHONPATH"])
     env["PYTHONPATH"] = os.pathsep.join(paths)
@@ -134,5 +133,5 @@ def _worker_env() -> dict[str, str]:
 
 if __name__ == "__main__":
     if sys.argv[1:] != ["--install"]:
-        sys.exit("usage: python -m reconstruct.person --install")
+        sys.exit("usage: python -m crisp_gym.reconstruct.person --install")
     print(f"MediaPipe {MEDIAPIPE_VERSION} in {install_runtime()}")

@@ -1,9 +1,9 @@
-"""MediaPipe Pose over a stack of RGB frames, run in its own process by :mod:`reconstruct.person`.
+"""MediaPipe Pose over a stack of RGB frames, run in its own process by :mod:`crisp_gym.reconstruct.person`.
 
-Usage: ``python -m reconstruct.person_worker FRAMES.npy OUT.npz``. Imports only numpy, OpenCV
+Usage: ``python -m crisp_gym.reconstruct.person_worker FRAMES.npy OUT.npz``. Imports only numpy, OpenCV
 and MediaPipe: MediaPipe 0.10.21 (the last release that ships its pose and segmentation models
 inside the wheel, so nothing is downloaded) needs protobuf < 5, while onnx in the same
-environment needs protobuf >= 6, so :mod:`reconstruct.person` puts a private protobuf first on
+environment needs protobuf >= 6, so :mod:`crisp_gym.reconstruct.person` puts a private protobuf first on
 this process's path. One line per 10 frames on stdout (``done total``) drives the caller's
 progress bar.
 """
@@ -42,5 +42,5 @@ def main(frames_path: str, out_path: str) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        sys.exit("usage: python -m reconstruct.person_worker FRAMES.npy OUT.npz")
+        sys.exit("usage: python -m crisp_gym.reconstruct.person_worker FRAMES.npy OUT.npz")
     main(sys.argv[1], sys.argv[2])

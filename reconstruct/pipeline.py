@@ -2,12 +2,12 @@
 
 Stages (paper, Algorithm 1), each timed into ``meta.json``:
 
-1. **read**: :func:`reconstruct.io.read_frames` (MegaSAM-style npz or an RGB-D folder) and
-   :func:`reconstruct.io.read_motion` (camera-frame SMPL parameters, BVH or ``motion.npz``);
-2. **align**: :func:`reconstruct.align.align` removes the person, recovers the metric scale from
+1. **read**: :func:`crisp_gym.reconstruct.io.read_frames` (MegaSAM-style npz or an RGB-D folder) and
+   :func:`crisp_gym.reconstruct.io.read_motion` (camera-frame SMPL parameters, BVH or ``motion.npz``);
+2. **align**: :func:`crisp_gym.reconstruct.align.align` removes the person, recovers the metric scale from
    the human, gravity from the human and the floor, and puts the floor at z = 0;
-3. **planes**: :func:`reconstruct.planes.fit_planes` turns the static scene into box primitives;
-4. **contact**: :mod:`reconstruct.contact` adds the supports the human's contacts imply and the
+3. **planes**: :func:`crisp_gym.reconstruct.planes.fit_planes` turns the static scene into box primitives;
+4. **contact**: :mod:`crisp_gym.reconstruct.contact` adds the supports the human's contacts imply and the
    camera never saw (``--contacts kinematic`` from the motion, a file, or ``none``);
 5. **write**: the clip directory (``scene.xml``, ``motion.npz`` in the scene's frame,
    ``primitives.json``, ``meta.json``), written to a temporary directory and renamed, so an
@@ -36,8 +36,8 @@ from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
 from crisp_gym.scene import Box, save_primitives, write_scene_xml
-from reconstruct.align import AlignConfig, Alignment, align, transform_motion
-from reconstruct.contact import (
+from crisp_gym.reconstruct.align import AlignConfig, Alignment, align, transform_motion
+from crisp_gym.reconstruct.contact import (
     CompletionResult,
     ContactConfig,
     body_geometry,
@@ -46,8 +46,8 @@ from reconstruct.contact import (
     kinematic_contacts,
     load_external_contacts,
 )
-from reconstruct.frames import Frames
-from reconstruct.io import (
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.io import (
     MotionInput,
     RgbdFolderConfig,
     check_video_fps,
@@ -56,8 +56,8 @@ from reconstruct.io import (
     read_motion,
     read_video,
 )
-from reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
-from reconstruct.report_page import write_report_page
+from crisp_gym.reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
+from crisp_gym.reconstruct.report_page import write_report_page
 
 
 @dataclass(frozen=True)
@@ -306,10 +306,10 @@ def run(args: ReconstructArgs) -> Path:
 
 
 def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
-    """The plain-video path (:mod:`reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``,
+    """The plain-video path (:mod:`crisp_gym.reconstruct.video`): clip, ``meta.json`` flags, ``comparison.mp4``,
     ``report.html``."""
-    from reconstruct.video import SfmConfig, VideoConfig, check_video_extras, reconstruct_video  # noqa: PLC0415
-    from reconstruct.video_report import write_comparison  # noqa: PLC0415
+    from crisp_gym.reconstruct.video import SfmConfig, VideoConfig, check_video_extras, reconstruct_video  # noqa: PLC0415
+    from crisp_gym.reconstruct.video_report import write_comparison  # noqa: PLC0415
 
     check_video_extras(use_sfm=not args.fixed_camera)  # before reading minutes of video
     start = time.perf_counter()

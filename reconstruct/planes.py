@@ -26,7 +26,7 @@ The stages, each vectorised with numpy/OpenCV:
    a notch is missing from it, and a box of the paper's 0.05 m thickness *behind* each rectangle
    (away from the cameras), so its visible face is where the points are. The floor is one box.
 
-Input: :class:`~reconstruct.frames.Frames` already metric, gravity-aligned (z up, floor at z = 0)
+Input: :class:`~crisp_gym.reconstruct.frames.Frames` already metric, gravity-aligned (z up, floor at z = 0)
 with person pixels removed (depth 0), and optionally the pelvis path (N, 3) of the person.
 """
 
@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from crisp_gym.scene import Box
-from reconstruct.frames import Frames
+from crisp_gym.reconstruct.frames import Frames
 
 _Z = np.array([0.0, 0.0, 1.0])
 
@@ -943,7 +943,7 @@ def fit_planes(frames: Frames, pelvis_path: np.ndarray | None = None, cfg: Plane
         A :class:`PlaneFit`; ``boxes`` is empty when no planar surface passed the filters.
     """
     if not isinstance(frames, Frames):
-        raise ValueError(f"frames must be a reconstruct.frames.Frames, got {type(frames).__name__}")
+        raise ValueError(f"frames must be a crisp_gym.reconstruct.frames.Frames, got {type(frames).__name__}")
     if not isinstance(cfg, PlaneFitConfig):
         raise ValueError(f"cfg must be a PlaneFitConfig, got {type(cfg).__name__}")
     start = time.perf_counter()

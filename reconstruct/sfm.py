@@ -5,7 +5,7 @@ COLMAP's defaults then build no model at all. The settings here (:class:`SfmConf
 that clip: 64/64 frames registered, 0.24 px error) relax the initial pair's triangulation angle
 and accept nearly homographic pairs, and give the focal length a prior instead of guessing it.
 
-The result is up to scale (:mod:`reconstruct.video` takes it from the person). When too few
+The result is up to scale (:mod:`crisp_gym.reconstruct.video` takes it from the person). When too few
 frames register, :func:`solve_cameras` returns a fixed camera with the reason, and the scene then
 comes from the person alone.
 """

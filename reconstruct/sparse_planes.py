@@ -1,7 +1,7 @@
 """Support surfaces from a sparse point cloud in the floor frame: the ground, seats, level tops.
 
 Structure from motion gives a few thousand points, not a depth map per frame, so the per-frame
-segmentation of :mod:`reconstruct.planes` has nothing to work on; and outdoors the points of
+segmentation of :mod:`crisp_gym.reconstruct.planes` has nothing to work on; and outdoors the points of
 vegetation and of a sloping bank fill every height. What a tracked humanoid needs from such a
 scene is where it can stand and sit, so three kinds of box are made, each 5 cm thick under its
 top as in the dense path:

@@ -23,7 +23,7 @@ for ``flat_walk``) and a lateral offset. The motion is assembled in stages:
    where a stance foot does not reach its surface.
 
 :func:`make_clip` returns ``(boxes, motion, meta)``; :func:`bundle_clips` writes the clips shipped
-in ``assets/clips`` and the bundled ``registry.yaml`` (``python -m reconstruct.synth``).
+in ``assets/clips`` and the bundled ``registry.yaml`` (``python -m crisp_gym.reconstruct.synth``).
 """
 
 from __future__ import annotations
@@ -1191,7 +1191,7 @@ def make_clip(kind: str, seed: int, config: SynthConfig | None = None) -> tuple[
     _check_ranges(motion)
     meta = {"source": "synthetic", "kind": kind, "seed": int(seed), "scene": scene, "gait": asdict(gait),
             "humanoid_height": cfg.height, "duration_s": motion.duration,
-            "generator": "reconstruct.synth.make_clip"}
+            "generator": "crisp_gym.reconstruct.synth.make_clip"}
     return boxes, motion, meta
 
 
@@ -1221,7 +1221,7 @@ def bundle_clips(out_dir: Path = CLIPS_DIR, registry: Path = REGISTRY) -> dict[s
         rel = Path(path).resolve().relative_to(registry.resolve().parent) \
             if Path(path).resolve().is_relative_to(registry.resolve().parent) else Path(path).resolve()
         entries[name] = {"path": rel.as_posix(), "tags": TAGS[name]}
-    write_text(registry, "# Bundled clips, written by `python -m reconstruct.synth`.\n"
+    write_text(registry, "# Bundled clips, written by `python -m crisp_gym.reconstruct.synth`.\n"
                + yaml.safe_dump({"clips": entries}, sort_keys=True))
     return written
 

@@ -1,6 +1,6 @@
 """Synthetic depth videos with ground truth: what a monocular front end (MegaSAM) would hand us.
 
-A box scene and the humanoid moving in it (a clip of :mod:`reconstruct.synth`, a registered clip,
+A box scene and the humanoid moving in it (a clip of :mod:`crisp_gym.reconstruct.synth`, a registered clip,
 or a random one with background boxes) are ray-cast from a moving, handheld-like camera into
 depth, a simply shaded RGB image and person masks. The depth then gets the errors of a
 monocular depth network (:class:`DepthNoise`): one unknown global scale (depth *and* camera
@@ -23,10 +23,10 @@ Camera views (:data:`VIEWS`):
 
 ``input.npz``
     the reconstruction input (``depths`` float16, ``intrinsic``, ``cam_c2w``, ``images``,
-    ``masks`` (person = 1), ``fps``), see :mod:`reconstruct.io`.
+    ``masks`` (person = 1), ``fps``), see :mod:`crisp_gym.reconstruct.io`.
 ``motion_camera.npz``
     the motion as GVHMR-style SMPL parameters in each frame's camera frame
-    (:func:`reconstruct.io.save_camera_smpl`), for ``--motion``.
+    (:func:`crisp_gym.reconstruct.io.save_camera_smpl`), for ``--motion``.
 ``gt/``
     a clip directory (``scene.xml``, ``primitives.json``, ``motion.npz`` with contacts,
     ``meta.json`` with the scale, the spec, the configs, the visibility of every box's top)
@@ -60,17 +60,17 @@ from crisp_gym.metrics import box_signed_distance, support_tops
 from crisp_gym.motion import Motion, foot_sole_heights
 from crisp_gym.registry import load_clip
 from crisp_gym.scene import Box, load_primitives
-from reconstruct.body_mesh import BodyMesher, pixel_rays
-from reconstruct.frames import Frames
-from reconstruct.io import save_camera_smpl
-from reconstruct.raycast import box_mesh, intrinsic_from_fov, look_at
-from reconstruct.synth import KINDS, make_clip
+from crisp_gym.reconstruct.body_mesh import BodyMesher, pixel_rays
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.io import save_camera_smpl
+from crisp_gym.reconstruct.raycast import box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.synth import KINDS, make_clip
 
 VIEWS: tuple[str, ...] = ("orbit", "low", "upper_body")
 """Camera views, see the module docstring."""
 
 VIDEO_KINDS: tuple[str, ...] = (*KINDS, "random")
-"""Scene kinds: those of :func:`reconstruct.synth.make_clip`, and ``random`` (one of the kinds with
+"""Scene kinds: those of :func:`crisp_gym.reconstruct.synth.make_clip`, and ``random`` (one of the kinds with
 raised supports, chosen by the seed, with background boxes)."""
 
 _RANDOM_KINDS = ("stairs_up", "stairs_down", "platform_step", "chair_sit")
@@ -593,7 +593,7 @@ def render_synth_video(spec: SynthSpec, config: SynthVideoConfig | None = None,
     frames = Frames(depth=depth, intrinsic=intrinsic, cam_c2w=input_poses, fps=motion.fps, rgb=rgb, person_mask=mask)
     person_pixels = mask.reshape(n, -1).sum(axis=1)
     meta = {
-        "source": "synthetic-video", "generator": "reconstruct.synth_video.render_synth_video",
+        "source": "synthetic-video", "generator": "crisp_gym.reconstruct.synth_video.render_synth_video",
         "name": spec.name, "spec": asdict(spec), "kind": kind, "scale": noise.scale,
         "image_size": [width, height], "fps": motion.fps, "num_frames": n,
         "config": asdict(cfg), "clip_meta": clip_meta, "render_seconds": render_seconds,

@@ -1,11 +1,11 @@
 """A plain video (mp4/mov or a folder of images) → a simulation-ready clip, offline on a CPU.
 
 The fast path next to the high-fidelity one (MegaSAM depth + GVHMR motion through
-:mod:`reconstruct.pipeline`): no depth network, no learned human mesh, no GPU, nothing downloaded.
+:mod:`crisp_gym.reconstruct.pipeline`): no depth network, no learned human mesh, no GPU, nothing downloaded.
 
-1. **person** (:mod:`reconstruct.person`): MediaPipe Pose, 33 landmarks in pixels and in metres
+1. **person** (:mod:`crisp_gym.reconstruct.person`): MediaPipe Pose, 33 landmarks in pixels and in metres
    (centred between the hips) and a mask, per frame;
-2. **cameras** (:mod:`reconstruct.sfm`): COLMAP on the frames with the person masked out, up to
+2. **cameras** (:mod:`crisp_gym.reconstruct.sfm`): COLMAP on the frames with the person masked out, up to
    scale; a fixed camera when too few frames register (or ``use_sfm=False``, a tripod);
 3. **person in the camera** (:func:`person_in_camera`): the landmarks' metric 3D shape placed by
    PnP against their pixels;
@@ -15,13 +15,13 @@ The fast path next to the high-fidelity one (MegaSAM depth + GVHMR motion throug
 5. **floor and gravity** (:func:`floor_frame`): the plane of scene points under the feet, its
    normal within :attr:`VideoConfig.max_floor_tilt_deg` of the person's trunk; without scene points
    (or when the feet do not stand on that plane), the plane through the feet's lowest landmarks;
-6. **motion** (:mod:`reconstruct.landmarks`, :func:`settle`): the landmarks, given our bone lengths,
+6. **motion** (:mod:`crisp_gym.reconstruct.landmarks`, :func:`settle`): the landmarks, given our bone lengths,
    retargeted onto the humanoid; under each seat contact the seat the scene points show is found
    (:func:`find_seats`), and the hips are lowered onto it and each planted foot put on the floor, the
    knees re-solved (a monocular estimate of a seated person floats about 20 cm above the seat, and
    its planted feet hover by centimetres);
-7. **scene** (:mod:`reconstruct.sparse_planes`): the ground, level tops the points show plainly,
-   the seats; then the supports the contacts need and the scene lacks (:mod:`reconstruct.contact`).
+7. **scene** (:mod:`crisp_gym.reconstruct.sparse_planes`): the ground, level tops the points show plainly,
+   the seats; then the supports the contacts need and the scene lacks (:mod:`crisp_gym.reconstruct.contact`).
 
 ``meta.json`` records quality flags (:func:`quality_flags`) and warns when they are poor.
 """
@@ -42,8 +42,8 @@ from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import foot_heights, sole_points
 from crisp_gym.motion import Motion, compute_kinematics, planted_feet
 from crisp_gym.scene import Box
-from reconstruct.align import fit_plane, ransac_plane
-from reconstruct.contact import (
+from crisp_gym.reconstruct.align import fit_plane, ransac_plane
+from crisp_gym.reconstruct.contact import (
     PARTS,
     CompletionResult,
     ContactConfig,
@@ -51,11 +51,11 @@ from reconstruct.contact import (
     filter_contacts,
     kinematic_contacts,
 )
-from reconstruct.landmarks import fill_gaps, hips_and_trunk, landmarks_to_motion, leg_lengths, with_leg_lengths
-from reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
-from reconstruct.pipeline import contact_completion
-from reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
-from reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
+from crisp_gym.reconstruct.landmarks import fill_gaps, hips_and_trunk, landmarks_to_motion, leg_lengths, with_leg_lengths
+from crisp_gym.reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
+from crisp_gym.reconstruct.pipeline import contact_completion
+from crisp_gym.reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
+from crisp_gym.reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 
 FEET = ("left_heel", "right_heel", "left_foot_index", "right_foot_index", "left_ankle", "right_ankle")
 """Landmarks the lowest point of a foot is taken from."""
@@ -290,7 +290,7 @@ class Seat:
 
 
 def find_seats(motion: Motion, points: np.ndarray, cfg: VideoConfig) -> list[Seat]:
-    """The seats under the motion's seat contacts (:func:`~reconstruct.sparse_planes.seat_surface`)."""
+    """The seats under the motion's seat contacts (:func:`~crisp_gym.reconstruct.sparse_planes.seat_surface`)."""
     geometry = body_geometry(motion)
     contacts = filter_contacts(kinematic_contacts(motion, cfg.contact.kinematic, geometry), motion,
                                cfg.contact.filter, geometry)
@@ -444,7 +444,7 @@ def check_video_extras(use_sfm: bool = True) -> None:
     if use_sfm and importlib.util.find_spec("pycolmap") is None:
         missing.append("pycolmap (pip install 'crisp-gym[video]')")
     if not runtime_installed():
-        missing.append(f"MediaPipe {MEDIAPIPE_VERSION} in its own folder (python -m reconstruct.person --install)")
+        missing.append(f"MediaPipe {MEDIAPIPE_VERSION} in its own folder (python -m crisp_gym.reconstruct.person --install)")
     if missing:
         raise ModuleNotFoundError("the video path needs " + " and ".join(missing) + "; scripts/install.sh does both")
 

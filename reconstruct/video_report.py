@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from crisp_gym.atomic import atomic_path
 from crisp_gym.envs.tracking import build_track_spec
-from reconstruct.video import VideoReconstruction
+from crisp_gym.reconstruct.video import VideoReconstruction
 
 _OPENCV_TO_MUJOCO = np.diag([1.0, -1.0, -1.0])  # OpenCV cameras look down +z with y down; MuJoCo's down -z, y up
 

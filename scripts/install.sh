@@ -24,4 +24,4 @@ if ! "$PY" -c "import torch" >/dev/null 2>&1; then
 fi
 "$PY" -m pip install -q -e ".[test,video]"
 # MediaPipe for the plain-video path, into its own folder (it needs protobuf < 5; see reconstruct/person.py).
-"$PY" -m reconstruct.person --install
+"$PY" -m crisp_gym.reconstruct.person --install

@@ -11,9 +11,9 @@ import pytest
 
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import compute_kinematics
-from reconstruct.align import AlignConfig, align, depth_drift, remove_person, transform_motion
-from reconstruct.io import MotionInput, read_frames, read_motion
-from reconstruct.synth_video import (
+from crisp_gym.reconstruct.align import AlignConfig, align, depth_drift, remove_person, transform_motion
+from crisp_gym.reconstruct.io import MotionInput, read_frames, read_motion
+from crisp_gym.reconstruct.synth_video import (
     DepthNoise,
     SynthSpec,
     SynthVideoConfig,

@@ -17,7 +17,7 @@ from crisp_gym.mjcf_scene import scene_surface
 from crisp_gym.motion import Motion
 from crisp_gym.registry import load_clip
 from crisp_gym.scene import SCENE_CONAFFINITY, SCENE_CONTYPE, Box, write_scene_xml
-from reconstruct.baselines import (
+from crisp_gym.reconstruct.baselines import (
     ColliderConfig,
     TsdfConfig,
     convex_pieces_clip,
@@ -28,8 +28,8 @@ from reconstruct.baselines import (
     tsdf_mesh,
     write_baseline_clips,
 )  # fmt: skip
-from reconstruct.frames import Frames
-from reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
 
 VOXEL = 0.03
 RESOLUTION = 0.05

@@ -11,7 +11,7 @@ pytest.importorskip("ray")
 
 from crisp_gym.clip import load_clip_dir  # noqa: E402
 from crisp_gym.registry import list_clips  # noqa: E402
-from reconstruct import batch, pipeline  # noqa: E402
+from crisp_gym.reconstruct import batch, pipeline  # noqa: E402
 from tests.conftest import small_synth_input  # noqa: E402
 
 

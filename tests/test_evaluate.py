@@ -12,7 +12,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from tests.test_train import SMALL_MLP, _obs, clip_dir  # noqa: F401  (clip_dir is a fixture)
-from train.evaluate import (
+from crisp_gym.train.evaluate import (
     accel_error,
     evaluate,
     jitter,
@@ -155,7 +155,7 @@ def test_rendered_rollout(clip_dir: Path) -> None:  # noqa: F811
 @pytest.fixture(scope="module")
 def untrained_run(clip_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
     from tests.test_train import _tiny_config
-    from train.ppo import train
+    from crisp_gym.train.ppo import train
 
     output = tmp_path_factory.mktemp("eval_run")
     train(_tiny_config(clip_dir, output, frames=512, num_envs=4, steps_per_env=64))
@@ -163,7 +163,7 @@ def untrained_run(clip_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
 
 
 def test_policy_file_round_trip(untrained_run: Path, tmp_path: Path) -> None:
-    from train.ppo import export_policy, load_policy, policy_training_stats
+    from crisp_gym.train.ppo import export_policy, load_policy, policy_training_stats
 
     path = export_policy(untrained_run, tmp_path / "shipped", clip="walk")
     from_checkpoint, cfg = load_policy(untrained_run)
@@ -183,7 +183,7 @@ def test_policy_file_round_trip(untrained_run: Path, tmp_path: Path) -> None:
 
 
 def test_cli_writes_report_and_plots(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
-    from train.evaluate import main
+    from crisp_gym.train.evaluate import main
 
     out = tmp_path / "eval"
     assert main([str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--episodes", "8", "--no-video"]) == 0
@@ -221,11 +221,11 @@ def test_demo_reports_policy_and_pd_reference(untrained_run: Path, clip_dir: Pat
 
 def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
     from crisp_gym import cli
-    from train.ship import read_progress
+    from crisp_gym.train.ship import read_progress
 
     out = tmp_path / "shipped"
     argv = ["ship", str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--episodes", "4", "--smooth", "2"]
-    assert cli.main(argv) == 0  # `crisp ship`, not `python -m train.ship`
+    assert cli.main(argv) == 0  # `crisp ship`, not `python -m crisp_gym.train.ship`
     report = json.loads((out / "eval.json").read_text())
     assert set(report["clips"]) == {clip_dir.name} and report["clips"][clip_dir.name]["rsi"]["episodes"] == 4
     assert {p.name for p in out.iterdir()} == {"policy.pt", "progress.csv", "learning_curve.png", "eval.json"}

@@ -376,7 +376,7 @@ def test_motion_readers_reject_other_files(exported, tmp_path: Path) -> None:
 
 
 def _tiny_actor(kind: str, scene_aware: bool, num_future: int = 5):
-    from train.models import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
+    from crisp_gym.train.models import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
 
     torch.manual_seed(0)
     config = ModelConfig(actor=kind, latent_dim=32, ff_dim=64, num_layers=1, num_heads=2, pointnet_hidden=(16, 32),
@@ -447,8 +447,8 @@ def test_policy_layout_describes_the_env_observation() -> None:
 
 
 def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
-    from train.models import ModelConfig
-    from train.ppo import build_agent, cpu_profile, load_policy, save_checkpoint
+    from crisp_gym.train.models import ModelConfig
+    from crisp_gym.train.ppo import build_agent, cpu_profile, load_policy, save_checkpoint
 
     cfg = cpu_profile(output=tmp_path / "run", model=ModelConfig(actor="mlp", mlp_actor_hidden=(32,), critic_hidden=(32,),
                                                                   init_action_std=0.1))

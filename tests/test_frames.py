@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from crisp_gym.scene import Box, floor_box
-from reconstruct.frames import Frames
-from reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
 
 
 def _render_scene():

@@ -32,12 +32,12 @@ from crisp_gym.scene import Box, floor_box
 from crisp_gym.sim2real.cli import load_any
 from crisp_gym.sim2real.log import RealLog, save_log
 from crisp_gym.sim2real.models import SERVO_ACTUATOR, SERVO_JOINT, build_servo_pendulum_spec
-from reconstruct.io import read_frames
+from crisp_gym.reconstruct.io import read_frames
 from tests.conftest import sway_motion
 from tests.test_bvh import BVH_TO_OURS, CMU_UNIT, cgspeed_joints, pose_rotations, write_bvh
 from tests.test_import_motion import _protomotions_file
 from tests.test_recon_io import _npz_arrays, _write_tum
-from train.ppo import load_policy
+from crisp_gym.train.ppo import load_policy
 
 MAX_BYTES = 2 * 1024**3
 MODEL = build_humanoid()

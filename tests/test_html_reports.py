@@ -15,7 +15,7 @@ import pytest
 
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.report import write_report
-from reconstruct import pipeline
+from crisp_gym.reconstruct import pipeline
 from tests.conftest import small_synth_input
 from tests.test_sim2real_diagnose import _case as servo_case
 
@@ -58,7 +58,7 @@ def _drawn(crops: list[np.ndarray], images: int) -> None:
 
 
 def test_eval_page_shows_its_plots_and_rollout(tmp_path):
-    from train.evaluate import main
+    from crisp_gym.train.evaluate import main
 
     out = tmp_path / "eval"
     assert main([str(SHIPPED), "--clip", "flat_walk", "-o", str(out), "--episodes", "2"]) == 0

@@ -16,10 +16,10 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.metrics import box_signed_distance, support_tops
 from crisp_gym.motion import compute_kinematics
-from reconstruct import pipeline
-from reconstruct.metrics import heading_alignment
-from reconstruct.planes import PlaneFitConfig
-from reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
+from crisp_gym.reconstruct import pipeline
+from crisp_gym.reconstruct.metrics import heading_alignment
+from crisp_gym.reconstruct.planes import PlaneFitConfig
+from crisp_gym.reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import compute_kinematics
 from crisp_gym.scene import Box, floor_box
-from reconstruct.frames import Frames
-from reconstruct.io import (
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.io import (
     PRIMESENSE_INTRINSIC,
     SMPL_PELVIS_OFFSET,
     TUM_FR1_INTRINSIC,
@@ -26,7 +26,7 @@ from reconstruct.io import (
     read_rgbd_folder,
     save_camera_smpl,
 )  # fmt: skip
-from reconstruct.raycast import DepthRenderer, box_mesh, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, look_at
 from tests.conftest import SHARED_DATA, sway_motion
 
 W, H = 320, 240  # Open3D's odometry runs a 3-level pyramid: at 160 px its coarsest level is too coarse
@@ -373,13 +373,13 @@ def test_a_wrong_depth_scale_is_warned_about(tmp_path, caplog):
     so and names the scale that gives a room."""
     _slambook_folder(tmp_path / "rgbd")
     intrinsics = (50.0, 51.0, 31.5, 23.5)
-    with caplog.at_level("WARNING", logger="reconstruct.io"):
+    with caplog.at_level("WARNING", logger="crisp_gym.reconstruct.io"):
         frames = read_rgbd_folder(tmp_path / "rgbd", RgbdFolderConfig(intrinsics=intrinsics, depth_scale=5000.0),
                                   progress=False)
     assert frames.depth.max() < 0.5
     assert "--depth-scale 1000 (millimetres: median 2.10 m)" in caplog.text
     caplog.clear()
-    with caplog.at_level("WARNING", logger="reconstruct.io"):
+    with caplog.at_level("WARNING", logger="crisp_gym.reconstruct.io"):
         read_rgbd_folder(tmp_path / "rgbd", RgbdFolderConfig(intrinsics=intrinsics, depth_scale=1000.0),
                          progress=False)
     assert "depth scale" not in caplog.text

@@ -8,7 +8,7 @@ import trimesh
 
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.scene import Box, floor_box
-from reconstruct.metrics import (
+from crisp_gym.reconstruct.metrics import (
     chamfer_gt_to_recon,
     chamfer_recon_to_gt,
     chamfer_two_way,
@@ -19,8 +19,8 @@ from reconstruct.metrics import (
     support_coverage,
     surface_mesh,
 )
-from reconstruct.raycast import box_mesh
-from reconstruct.synth import StairsParams, stairs_boxes
+from crisp_gym.reconstruct.raycast import box_mesh
+from crisp_gym.reconstruct.synth import StairsParams, stairs_boxes
 from tests.conftest import sway_motion
 
 SLAB = Box(center=[0.0, 0.0, -0.05], half_size=[1.0, 1.0, 0.05])  # top face: the 2 x 2 m square at z = 0

@@ -11,8 +11,8 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, joint_range_deg
 from crisp_gym.metrics import motion_plausibility, scene_model, sole_points, support_tops
 from crisp_gym.registry import BUNDLED_REGISTRY, _read, load_clip
-from reconstruct import synth
-from reconstruct.synth import BUNDLED, KINDS, make_clip
+from crisp_gym.reconstruct import synth
+from crisp_gym.reconstruct.synth import BUNDLED, KINDS, make_clip
 
 SEED = 3
 

@@ -14,11 +14,11 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import compute_kinematics
-from reconstruct import synth_video
-from reconstruct.frames import Frames
-from reconstruct.io import read_frames, read_motion
-from reconstruct.raycast import DepthRenderer, box_mesh
-from reconstruct.synth_video import (
+from crisp_gym.reconstruct import synth_video
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.io import read_frames, read_motion
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.reconstruct.synth_video import (
     DepthNoise,
     SynthSpec,
     SynthVideoConfig,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from train.models import (
+from crisp_gym.train.models import (
     ACTION_DIM,
     PROPRIO_DIM,
     TARGET_DIM,
@@ -136,7 +136,7 @@ def test_limited_statistics_weigh_new_data_as_if_that_many_samples_had_been_seen
     assert stats.count.item() == 1_500
     stats.limit_count(1e9)  # a limit above the count changes nothing
     assert stats.count.item() == 1_500
-    from train.ppo import TrainConfig
+    from crisp_gym.train.ppo import TrainConfig
 
     with pytest.raises(ValueError, match="init_stats_samples"):
         TrainConfig(init_stats_samples=0)
@@ -153,7 +153,7 @@ def test_obs_normalizer_is_shared_and_saved() -> None:
 
 
 def test_normalize_advantages() -> None:
-    from train.ppo import normalize_advantages
+    from crisp_gym.train.ppo import normalize_advantages
 
     advantage = torch.randn(4096, 1, generator=torch.Generator().manual_seed(1)) * 37.0 + 12.0
     normalised = normalize_advantages(advantage)
@@ -167,7 +167,7 @@ def test_normalize_advantages() -> None:
 
 
 def test_training_reward_caps_the_energy_penalty_and_scales() -> None:
-    from train.env import TrainingReward
+    from crisp_gym.train.env import TrainingReward
 
     terms = {"pos": np.array([2.0, 1.0, 0.5]), "energy": np.array([-0.1, -3.0, np.nan])}
     reward = np.array([2.0 - 0.1, 1.0 - 3.0, 0.0])  # a non-finite state gets reward 0 from the env
@@ -187,7 +187,7 @@ def test_training_reward_caps_the_energy_penalty_and_scales() -> None:
 def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
     from torchrl.envs.utils import check_env_specs
 
-    from train.ppo import make_env, paper_profile
+    from crisp_gym.train.ppo import make_env, paper_profile
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4, scene_aware=True), seed=0)
     check_env_specs(env)
@@ -208,7 +208,7 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
     """``estimate_values`` + value-less GAE gives TorchRL's two-pass GAE, episode ends included."""
     from torchrl.objectives.value import GAE
 
-    from train.ppo import build_agent, estimate_values, make_env, paper_profile
+    from crisp_gym.train.ppo import build_agent, estimate_values, make_env, paper_profile
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4), seed=1)
     agent = build_agent(SMALL_MLP, env.observation_spec["targets"].shape[-2], 0)
@@ -228,7 +228,7 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
 
 
 def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  # noqa: F821
-    from train.ppo import cpu_profile
+    from crisp_gym.train.ppo import cpu_profile
 
     # unscaled rewards: the learning rates here suit the critic regressing the env's own returns
     base = dict(clip=str(clip_dir), output=output, num_envs=16, steps_per_env=32, minibatch_size=256, epochs=4,
@@ -245,8 +245,8 @@ def trained_run(clip_dir: Path, tmp_path_factory):
     fairly well; adding 0.05 rad to every action makes it clearly worse, so a few thousand
     frames of PPO must show a measurable improvement.
     """
-    from train.evaluate import evaluate
-    from train.ppo import load_checkpoint, load_policy, train
+    from crisp_gym.train.evaluate import evaluate
+    from crisp_gym.train.ppo import load_checkpoint, load_policy, train
 
     output = tmp_path_factory.mktemp("run")
     cfg = _tiny_config(clip_dir, output, frames=0)
@@ -291,7 +291,7 @@ def test_progress_csv_and_config(trained_run) -> None:
 
 
 def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
-    from train.ppo import load_checkpoint, load_policy, train
+    from crisp_gym.train.ppo import load_checkpoint, load_policy, train
 
     cfg, result, _, _ = trained_run
     state = load_checkpoint(cfg.output)
@@ -318,7 +318,7 @@ def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
 
 
 def test_save_load_agent_exact(tmp_path: Path) -> None:
-    from train.ppo import build_agent, load_policy, paper_profile, save_checkpoint
+    from crisp_gym.train.ppo import build_agent, load_policy, paper_profile, save_checkpoint
 
     cfg = paper_profile(output=tmp_path, scene_aware=True, model=TINY_TRANSFORMER)
     agent = build_agent(cfg.model, K, N_POINTS)
@@ -332,7 +332,7 @@ def test_save_load_agent_exact(tmp_path: Path) -> None:
 
 
 def test_scene_aware_transformer_trains(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import train
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path, scene_aware=True, model=TINY_TRANSFORMER, num_envs=4, frames=512,
                        minibatch_size=64, epochs=1)
@@ -342,7 +342,7 @@ def test_scene_aware_transformer_trains(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_cli(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import main
+    from crisp_gym.train.ppo import main
 
     out = tmp_path / "cli"
     assert main(["--profile", "cpu", "--clip", str(clip_dir), "--scene-aware", "--frames", "64", "--num-envs", "2",
@@ -354,7 +354,7 @@ def test_cli(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import load_checkpoint, make_env, train
+    from crisp_gym.train.ppo import load_checkpoint, make_env, train
 
     def env_fn(cfg, seed):
         env = make_env(cfg, seed)
@@ -376,7 +376,7 @@ def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> None:
-    from train.ppo import RunLogger, run_wall_time
+    from crisp_gym.train.ppo import RunLogger, run_wall_time
 
     logger = RunLogger(tmp_path, append=False)
     for i in range(1, 6):
@@ -394,7 +394,7 @@ def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> No
 
 
 def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import load_checkpoint, train
+    from crisp_gym.train.ppo import load_checkpoint, train
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=256, actor_lr=1e-4, critic_lr=1e-3)
     train(cfg)
@@ -407,7 +407,7 @@ def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, 
     """``init_from`` a policy file: the new run starts from its actor (normaliser included, so no
     iteration only gathers statistics); during the critic warm-up only the critic moves; after
     it the actor trains; a different architecture is refused."""
-    from train.ppo import export_policy, load_checkpoint, train
+    from crisp_gym.train.ppo import export_policy, load_checkpoint, train
 
     source = tmp_path / "source"
     train(_tiny_config(clip_dir, source, num_envs=4, frames=512))
@@ -436,7 +436,7 @@ def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, 
 
 
 def test_periodic_evaluation_is_logged_and_plotted(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import train
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, eval_every=2, eval_episodes=4)
     result = train(cfg)
@@ -454,8 +454,8 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
                                                                     monkeypatch) -> None:
     """The stop rule reads the evaluation: every clip at the success threshold *and* tracked from
     frame 0 to its end (evaluations replaced by a script, so the rule is tested, not learning)."""
-    from train import evaluate
-    from train.ppo import train
+    from crisp_gym.train import evaluate
+    from crisp_gym.train.ppo import train
 
     script = iter([{"success": 0.95, "frames": 40, "num_frames": 90, "whole_clip": False},  # frame 0 fails
                    {"success": 0.85, "frames": 89, "num_frames": 90, "whole_clip": True},   # below the threshold
@@ -471,7 +471,7 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
 
 
 def test_actor_learning_rate_ramps_up_after_the_critic_warmup() -> None:
-    from train.ppo import actor_lr_at
+    from crisp_gym.train.ppo import actor_lr_at
 
     lrs = [actor_lr_at(i, start=20, ramp=100, lr=3e-5) for i in range(0, 200)]
     assert all(lr == 0 for lr in lrs[:20])
@@ -488,10 +488,10 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
     import sys
     import time
 
-    from train.ppo import load_checkpoint
+    from crisp_gym.train.ppo import load_checkpoint
 
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "train.ppo", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
+    command = [sys.executable, "-m", "crisp_gym.train.ppo", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
                "--num-envs", "2", "--steps-per-env", "16", "--checkpoint-every", "1000", "--no-progress",
                "--model.mlp-actor-hidden", "32", "--model.critic-hidden", "32"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -510,7 +510,7 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
 
 
 def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path, tmp_path: Path) -> None:
-    from train.ppo import load_checkpoint, train
+    from crisp_gym.train.ppo import load_checkpoint, train
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, start_sampling="adaptive")
     train(cfg)
@@ -524,8 +524,8 @@ def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path,
 def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, monkeypatch) -> None:
     """``best.pt`` holds the weights of the best evaluation (RSI success + share tracked from
     frame 0), not the last one; a resumed run only replaces it with a better one."""
-    from train import evaluate
-    from train.ppo import load_checkpoint, train
+    from crisp_gym.train import evaluate
+    from crisp_gym.train.ppo import load_checkpoint, train
 
     scores = iter([(0.5, 20), (0.9, 89), (0.2, 10), (0.8, 80), (0.95, 89)])
 
@@ -548,7 +548,7 @@ def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, mon
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -1e-4])
 def test_rates_that_no_optimiser_can_use_are_refused_by_the_config(clip_dir: Path, field: str, value: float) -> None:
     """``--actor-lr nan`` was accepted until the first update failed with "actions must be finite"."""
-    from train.ppo import TrainConfig
+    from crisp_gym.train.ppo import TrainConfig
 
     with pytest.raises(ValueError, match=f"{field}=.*must be positive and finite"):
         TrainConfig(clip=str(clip_dir), **{field: value})
@@ -557,7 +557,7 @@ def test_rates_that_no_optimiser_can_use_are_refused_by_the_config(clip_dir: Pat
 def test_files_that_are_not_runs_get_a_one_line_error(tmp_path: Path) -> None:
     """A random ``.pt`` to eval gave "pop from empty list"; a resume without a checkpoint a bare
     FileNotFoundError traceback. Each now names the file and what it is not."""
-    from train.ppo import load_checkpoint, load_policy
+    from crisp_gym.train.ppo import load_checkpoint, load_policy
 
     torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt is neither a crisp-gym training checkpoint nor a policy file"):
@@ -577,7 +577,7 @@ def test_training_scalars_reach_torchrl_loggers(clip_dir: Path, tmp_path: Path) 
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from train.ppo import train
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path / "run", frames=2048, loggers=("csv", "tensorboard"))
     train(cfg)
@@ -595,7 +595,7 @@ def test_training_scalars_reach_torchrl_loggers(clip_dir: Path, tmp_path: Path) 
 
 
 def test_an_unknown_logger_is_named() -> None:
-    from train.ppo import TrainConfig
+    from crisp_gym.train.ppo import TrainConfig
 
     with pytest.raises(ValueError, match=r"unknown loggers \['neptune'\]; TorchRL's are csv, tensorboard"):
         TrainConfig(loggers=("neptune",))
@@ -606,7 +606,7 @@ def test_collection_on_two_ray_workers_trains_with_their_frames(clip_dir: Path, 
     its own batched env; an iteration has both workers' frames, the losses are finite, and the
     checkpoint resumes like any other."""
     pytest.importorskip("ray")
-    from train.ppo import load_checkpoint, train
+    from crisp_gym.train.ppo import load_checkpoint, train
 
     cfg = _tiny_config(clip_dir, tmp_path / "run", frames=4 * 2 * 16 * 8, num_envs=16, steps_per_env=8,
                        minibatch_size=64, ray_workers=2)

@@ -15,12 +15,12 @@ import pytest
 
 import crisp_gym  # noqa: F401 - registers CrispTrack-v0
 from crisp_gym import cli
-from reconstruct import person
-from reconstruct.io import is_plain_video, read_video
-from reconstruct.person import PersonTrack, landmark
-from reconstruct.pipeline import ReconstructArgs, run
-from reconstruct.sfm import CameraSolve
-from reconstruct.video import FEET, VideoConfig, floor_frame, metric_scale
+from crisp_gym.reconstruct import person
+from crisp_gym.reconstruct.io import is_plain_video, read_video
+from crisp_gym.reconstruct.person import PersonTrack, landmark
+from crisp_gym.reconstruct.pipeline import ReconstructArgs, run
+from crisp_gym.reconstruct.sfm import CameraSolve
+from crisp_gym.reconstruct.video import FEET, VideoConfig, floor_frame, metric_scale
 from tests.conftest import SHARED_DATA
 
 VIDEO = SHARED_DATA / "videomimic_sitting"
@@ -79,14 +79,14 @@ def test_bad_videos_are_named(tmp_path):
 
 def test_missing_video_extras_name_the_fix(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(person.platformdirs, "user_data_dir", lambda name: str(tmp_path))
-    with pytest.raises(FileNotFoundError, match="reconstruct.person --install"):
+    with pytest.raises(FileNotFoundError, match="crisp_gym.reconstruct.person --install"):
         person.track_person(_frames(2))
     folder = tmp_path / "frames"
     folder.mkdir()
     for k, frame in enumerate(_frames(3)):
         iio.imwrite(folder / f"{k}.png", frame)
     assert cli.main(["reconstruct", str(folder), "-o", str(tmp_path / "clip")]) == 2
-    assert "reconstruct.person --install" in capsys.readouterr().err and not (tmp_path / "clip").exists()
+    assert "crisp_gym.reconstruct.person --install" in capsys.readouterr().err and not (tmp_path / "clip").exists()
 
 
 def _pinhole(f: float = 600.0, w: int = 640, h: int = 480) -> np.ndarray:
@@ -217,7 +217,7 @@ def test_upright_makes_the_standing_trunk_vertical():
     hips; the angle is reported and a crouched frame keeps its lean relative to the standing ones."""
     from scipy.spatial.transform import Rotation
 
-    from reconstruct.video import upright
+    from crisp_gym.reconstruct.video import upright
 
     points = _standing_person(10, np.array([1.0, 2.0]))
     points[7:, :, 2] *= 0.6  # crouched: hips lower than 0.85 of the highest

@@ -47,7 +47,7 @@ from tqdm.auto import tqdm
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.envs.tracking import terms_from_info
 from crisp_gym.html_report import Section, rows_from, write_html_report
-from train.models import ACTION_DIM
+from crisp_gym.train.models import ACTION_DIM
 
 SEGMENT_FRAMES = 100
 BODY_GROUPS = {
@@ -134,7 +134,7 @@ def accel_error(pred: np.ndarray, ref: np.ndarray) -> float:
 
 def torch_policy(actor: nn.Module, scene_aware: bool, device: torch.device | str = "cpu") -> Policy:
     """A :data:`Policy` from an actor returning action means, or (mean, scale) as
-    :class:`~train.models.FixedStdGaussian` does; the mean is the action."""
+    :class:`~crisp_gym.train.models.FixedStdGaussian` does; the mean is the action."""
     keys = ["proprio", "targets", "points"] if scene_aware else ["proprio", "targets"]
 
     @torch.no_grad()
@@ -590,7 +590,7 @@ def run_eval(args: EvalArgs) -> dict[str, Any]:
     Without ``--clip`` every clip the policy was trained on is evaluated; with several, each
     gets its own subdirectory of ``--output`` and ``report.json`` there sums them up.
     """
-    from train.ppo import load_policy, policy_training_stats
+    from crisp_gym.train.ppo import load_policy, policy_training_stats
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")

@@ -2,7 +2,7 @@
 
 Every module here is plain torch: it takes the observation tensors (``proprio`` (…, 361),
 ``targets`` (…, K, 432) and, scene-aware, ``points`` (…, N, 3)) with any number of leading
-batch dimensions and returns tensors. TorchRL wraps them in :mod:`train.ppo`.
+batch dimensions and returns tensors. TorchRL wraps them in :mod:`crisp_gym.train.ppo`.
 
 * :class:`TransformerActor`: the paper's actor. One token from the proprioception, one per
   future target frame and, scene-aware, ``num_point_tokens`` tokens from a :class:`PointNet`

@@ -2,7 +2,7 @@
 
 Pieces, all from TorchRL except the env adapter:
 
-* env: :class:`~train.env.CrispTrackTorchEnv` around the batched ``CrispTrack-v0``;
+* env: :class:`~crisp_gym.train.env.CrispTrackTorchEnv` around the batched ``CrispTrack-v0``;
 * collection: ``torchrl.collectors.Collector`` (``num_envs × steps_per_env`` frames per
   iteration, trajectories continue across iterations);
 * advantages: ``torchrl.objectives.value.GAE`` (γ = 0.99, λ = 0.95) on values from
@@ -53,7 +53,7 @@ from tqdm.auto import tqdm
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.file_errors import reading
 from crisp_gym.torch_file import load_tensors
-from train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
+from crisp_gym.train.models import PROPRIO_DIM, TARGET_DIM, Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 
 CHECKPOINT_NAME = "checkpoint.pt"
 BEST_NAME = "best.pt"  # the checkpoint of the best periodic evaluation so far
@@ -95,10 +95,10 @@ class TrainConfig:
         normalize_advantage: normalise advantages per minibatch (zero mean, unit std).
         normalize_obs: running observation normalisation (proprio and targets).
         reward_scale: factor on the rewards PPO learns from (not the logged returns); see
-            :class:`~train.env.TrainingReward`.
+            :class:`~crisp_gym.train.env.TrainingReward`.
         energy_cap: bound on the energy penalty's magnitude per step in the rewards PPO
             learns from (``None``: unbounded, as in the paper); see
-            :class:`~train.env.TrainingReward`.
+            :class:`~crisp_gym.train.env.TrainingReward`.
         model: actor/critic architecture (paper: transformer actor, [1024, 512] critic).
         seed: seeds torch, the minibatch shuffles and the env's start frames.
         device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"``...
@@ -326,7 +326,7 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
     import gymnasium as gym
 
     import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
-    from train.env import CrispTrackTorchEnv, TrainingReward
+    from crisp_gym.train.env import CrispTrackTorchEnv, TrainingReward
 
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
@@ -859,7 +859,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             sampler.failures = restored
     evaluation = None
     if cfg.eval_every:
-        from train.evaluate import LibraryEvaluation, torch_policy
+        from crisp_gym.train.evaluate import LibraryEvaluation, torch_policy
 
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
                                        num_threads=cfg.num_threads)
@@ -931,7 +931,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             history.append(row)
             logger.log(row)
             if evaluation is not None and iteration % cfg.eval_every == 0:
-                from train.evaluate import plot_evaluations
+                from crisp_gym.train.evaluate import plot_evaluations
 
                 plot_evaluations(logger.path, out / "evaluation.png", dict(zip(evaluation.names, evaluation.num_frames)))
             bar.update(data.numel())

@@ -5,7 +5,7 @@
 writes into ``-o``:
 
 * ``policy.pt``: the actor (state dict, normaliser statistics, config, training totals; see
-  :func:`train.ppo.export_policy`), what ``crisp demo`` and ``crisp eval`` load;
+  :func:`crisp_gym.train.ppo.export_policy`), what ``crisp demo`` and ``crisp eval`` load;
 * ``progress.csv``: the run's training log (6 significant digits);
 * ``learning_curve.png``: success rate and mean return of the episodes that ended in each
   iteration, against training frames;
@@ -95,7 +95,7 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from train.evaluate import save_figure
+    from crisp_gym.train.evaluate import save_figure
 
     frames = progress["frames"] / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -115,8 +115,8 @@ def ship(args: ShipArgs) -> dict:
     """Write the files of the module docstring; returns the evaluation report."""
     import shutil
 
-    from train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
-    from train.ppo import BEST_NAME, export_policy, load_policy, policy_training_stats
+    from crisp_gym.train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
+    from crisp_gym.train.ppo import BEST_NAME, export_policy, load_policy, policy_training_stats
 
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)

@@ -92,8 +92,8 @@ def reference_track(clip: Clip) -> Track:
 def policy_track(policy_source: str | Path, clip: str | Path) -> Track:
     """The policy's simulated humanoid from frame 0 of ``clip``, until the episode ends."""
     from crisp_gym.envs.track import CrispTrackEnv  # noqa: PLC0415
-    from train.evaluate import torch_policy  # noqa: PLC0415
-    from train.ppo import load_policy  # noqa: PLC0415
+    from crisp_gym.train.evaluate import torch_policy  # noqa: PLC0415
+    from crisp_gym.train.ppo import load_policy  # noqa: PLC0415
 
     actor, cfg = load_policy(policy_source)
     policy = torch_policy(actor, cfg.scene_aware)
@@ -114,7 +114,7 @@ def policy_track(policy_source: str | Path, clip: str | Path) -> Track:
 def input_points(clip: Clip, max_points: int, seed: int = 0) -> np.ndarray | None:
     """The clip's input depth as world points (the reconstruction's scale and alignment from
     ``meta.json``), subsampled; ``None`` when the clip has no readable input."""
-    from reconstruct.io import read_frames  # noqa: PLC0415
+    from crisp_gym.reconstruct.io import read_frames  # noqa: PLC0415
 
     meta = clip.meta
     alignment = meta.get("alignment", {})
@@ -183,7 +183,7 @@ def policy_and_clip(args: ViewArgs) -> tuple[Path | None, str]:
     config = source / "config.json" if source.is_dir() else None
     if config is not None and config.is_file():
         return source, json.loads(config.read_text())["clip"][0]
-    from train.ppo import load_policy  # noqa: PLC0415
+    from crisp_gym.train.ppo import load_policy  # noqa: PLC0415
 
     return source, load_policy(source)[1].clip[0]
 

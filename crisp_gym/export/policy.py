@@ -48,7 +48,7 @@ class DeterministicPolicy(nn.Module):
         super().__init__()
         inner = getattr(actor, "actor", actor)  # FixedStdGaussian wraps the mean network
         if not hasattr(inner, "normalizer") or not hasattr(inner, "scene_aware"):
-            raise ValueError(f"expected a crisp-gym actor (train.models), got {type(actor).__name__}")
+            raise ValueError(f"expected a crisp-gym actor (crisp_gym.train.models), got {type(actor).__name__}")
         self.actor = copy.deepcopy(inner).cpu()  # leaves the caller's module (mode, device) alone
         self.eval()
         self.scene_aware = bool(inner.scene_aware)
@@ -186,7 +186,7 @@ def export_policy(actor: nn.Module, directory: str | Path, track: TrackConfig | 
 def export_checkpoint(checkpoint: str | Path, directory: str | Path,
                       formats: tuple[str, ...] = POLICY_FORMATS) -> list[Path]:
     """Export the actor of a ``crisp train`` checkpoint (file or run directory) with :func:`export_policy`."""
-    from train.ppo import load_policy
+    from crisp_gym.train.ppo import load_policy
 
     actor, cfg = load_policy(checkpoint)
     policy = DeterministicPolicy(actor)
