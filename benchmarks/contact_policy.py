@@ -10,7 +10,7 @@
 2. ``crisp reconstruct`` twice from that input: ``--contacts kinematic`` (the seat comes back as a
    contact primitive) and ``--contacts none`` (no seat).
 3. One policy per scene, trained with the same profile, seed and frame budget
-   (``crisp_gym.train.ppo.cpu_profile``), each evaluated in its own scene; the PD-reference controller
+   (``crisp_gym.train.config.cpu_profile``), each evaluated in its own scene; the PD-reference controller
    (zero residual) in both scenes is the untrained baseline.
 
 Besides success and MPJPE, the table gives the mean absolute torque of the hip, knee and ankle
@@ -37,7 +37,10 @@ from crisp_gym.reconstruct.pipeline import ReconstructArgs
 from crisp_gym.reconstruct.pipeline import run as run_reconstruct
 from crisp_gym.reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
 from crisp_gym.train.evaluate import Rollout, evaluate_policy, torch_policy, zero_policy
-from crisp_gym.train.ppo import CHECKPOINT_NAME, cpu_profile, load_checkpoint, load_policy, train
+from crisp_gym.policy.files import CHECKPOINT_NAME, load_checkpoint
+from crisp_gym.train.checkpoints import load_policy
+from crisp_gym.train.config import cpu_profile
+from crisp_gym.train.ppo import train
 
 SCENES = {"with completion": "kinematic", "without completion": "none"}
 VIEWS = {"chair_sit": "low", "platform_step": "upper_body"}

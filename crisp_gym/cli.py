@@ -12,7 +12,7 @@ import importlib
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("crisp_gym.demo", "run the demo on a bundled clip: rollout, report and video"),
+    "demo": ("crisp_gym.train.demo", "run the demo on a bundled clip: rollout, report and video"),
     "clips": ("crisp_gym.clips_cli", "list the registered clips"),
     "import-motion": ("crisp_gym.import_motion", "make a flat-ground clip from a BVH/SMPL/motion.npz file"),
     "synth-clips": ("crisp_gym.reconstruct.synth", "regenerate the bundled synthetic clips, or make one more (--kind, --seed)"),
@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reconstruct": ("crisp_gym.reconstruct.pipeline", "reconstruct a clip from a depth video and a human motion"),
     "reconstruct-all": ("crisp_gym.reconstruct.batch", "reconstruct every input of a folder as its own clip, in parallel on Ray"),
     "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),
-    "train": ("crisp_gym.train.ppo", "train a tracking policy with PPO"),
+    "train": ("crisp_gym.train.cli", "train a tracking policy with PPO"),
     "eval": ("crisp_gym.train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),
     "ship": ("crisp_gym.train.ship", "package a run for shipping: policy file, evaluation, learning curves"),
     "view": ("crisp_gym.train.view", "an interactive 3D viewer in the browser: a clip, its reference and a policy's rollout"),

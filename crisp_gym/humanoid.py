@@ -29,6 +29,7 @@ import mujoco
 import numpy as np
 
 from crisp_gym.atomic import write_text
+from crisp_gym.bundled import HUMANOID_XML
 
 BODY_NAMES: tuple[str, ...] = (
     "Pelvis", "L_Hip", "L_Knee", "L_Ankle", "L_Toe", "R_Hip", "R_Knee", "R_Ankle", "R_Toe",
@@ -327,7 +328,7 @@ def build_humanoid(config: HumanoidConfig | None = None) -> mujoco.MjModel:
     return build_humanoid_spec(config).compile()
 
 
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent.parent / "assets" / "humanoid" / "crisp_humanoid.xml"
+DEFAULT_MODEL_PATH = HUMANOID_XML
 
 
 def write_default_model(path: Path = DEFAULT_MODEL_PATH) -> Path:

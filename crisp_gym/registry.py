@@ -2,7 +2,7 @@
 
 Two YAML files are read, the user's entries shadowing the bundled ones:
 
-* the bundled ``registry.yaml`` at the project root (clips in ``assets/clips``);
+* the bundled ``assets/registry.yaml`` (clips in ``assets/clips``, package data);
 * the user registry, ``$CRISP_GYM_USER_REGISTRY`` or ``<user data dir>/crisp-gym/registry.yaml``,
   where ``crisp import-motion`` and ``crisp reconstruct --register`` add clips. It never
   lives inside the installed package.
@@ -21,11 +21,10 @@ import platformdirs
 import yaml
 
 from crisp_gym.atomic import write_text
+from crisp_gym.bundled import BUNDLED_REGISTRY
 from crisp_gym.clip import Clip, load_clip_dir
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
 _CLIP_NAME = re.compile(r"\w[\w.+-]*")
-BUNDLED_REGISTRY = PROJECT_ROOT / "registry.yaml"
 
 
 def user_registry_path() -> Path:

@@ -23,7 +23,7 @@ for ``flat_walk``) and a lateral offset. The motion is assembled in stages:
    where a stance foot does not reach its surface.
 
 :func:`make_clip` returns ``(boxes, motion, meta)``; :func:`bundle_clips` writes the clips shipped
-in ``assets/clips`` and the bundled ``registry.yaml`` (``python -m crisp_gym.reconstruct.synth``).
+in ``assets/clips`` and the bundled ``assets/registry.yaml`` (``python -m crisp_gym.reconstruct.synth``).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.atomic import write_text
 from crisp_gym.balance import GRAVITY
+from crisp_gym.bundled import BUNDLED_CLIPS, BUNDLED_REGISTRY
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import (
     BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid, joint_range_deg,
@@ -70,9 +71,8 @@ TAGS: dict[str, list[str]] = {
     "chair_sit": ["synthetic", "sit", "walk"],
 }
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-CLIPS_DIR = PROJECT_ROOT / "assets" / "clips"
-REGISTRY = PROJECT_ROOT / "registry.yaml"
+CLIPS_DIR = BUNDLED_CLIPS
+REGISTRY = BUNDLED_REGISTRY
 
 # Human-plausible ranges (metres) of the randomised scene parameters; building codes put
 # risers at 0.10-0.20 m and treads (goings) at 0.25-0.35 m; chairs have 0.40-0.50 m seats.
@@ -1221,7 +1221,7 @@ def bundle_clips(out_dir: Path = CLIPS_DIR, registry: Path = REGISTRY) -> dict[s
         rel = Path(path).resolve().relative_to(registry.resolve().parent) \
             if Path(path).resolve().is_relative_to(registry.resolve().parent) else Path(path).resolve()
         entries[name] = {"path": rel.as_posix(), "tags": TAGS[name]}
-    write_text(registry, "# Bundled clips, written by `python -m crisp_gym.reconstruct.synth`.\n"
+    write_text(registry, "# Bundled clips, written by `crisp synth-clips`.\n"
                + yaml.safe_dump({"clips": entries}, sort_keys=True))
     return written
 

@@ -163,9 +163,10 @@ def untrained_run(clip_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
 
 
 def test_policy_file_round_trip(untrained_run: Path, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import export_policy, load_policy, policy_training_stats
+    from crisp_gym.policy.files import policy_training_stats, write_policy_file
+    from crisp_gym.train.checkpoints import load_policy
 
-    path = export_policy(untrained_run, tmp_path / "shipped", clip="walk")
+    path = write_policy_file(untrained_run, tmp_path / "shipped", clip="walk")
     from_checkpoint, cfg = load_policy(untrained_run)
     from_file, file_cfg = load_policy(path.parent)
     assert file_cfg.clip == ("walk",) and file_cfg.model == cfg.model
@@ -201,7 +202,7 @@ def test_cli_writes_report_and_plots(untrained_run: Path, clip_dir: Path, tmp_pa
 
 
 def test_demo_reports_policy_and_pd_reference(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811
-    from crisp_gym.demo import main
+    from crisp_gym.train.demo import main
 
     out = tmp_path / "demo"
     assert main(["--clip", str(clip_dir), "--policy", str(untrained_run), "-o", str(out), "--episodes", "4",
@@ -239,7 +240,7 @@ def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_d
 def test_join_videos_plays_the_clips_in_order_with_captions(tmp_path: Path) -> None:
     import imageio.v2 as imageio
 
-    from crisp_gym.demo import join_videos
+    from crisp_gym.train.demo import join_videos
 
     videos = {}
     for name, shade, count in (("first", 40, 5), ("second", 200, 3)):
@@ -254,7 +255,7 @@ def test_join_videos_plays_the_clips_in_order_with_captions(tmp_path: Path) -> N
 
 
 def test_shipped_policy_of_a_clip_is_its_own_or_a_library_policy_listing_it(tmp_path: Path, monkeypatch) -> None:
-    from crisp_gym import demo
+    from crisp_gym.train import demo
 
     for name, clips in (("flat_walk", None), ("library", ["stairs_up", "chair_sit"])):
         (tmp_path / name).mkdir()

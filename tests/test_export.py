@@ -376,7 +376,7 @@ def test_motion_readers_reject_other_files(exported, tmp_path: Path) -> None:
 
 
 def _tiny_actor(kind: str, scene_aware: bool, num_future: int = 5):
-    from crisp_gym.train.models import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
+    from crisp_gym.policy.networks import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
 
     torch.manual_seed(0)
     config = ModelConfig(actor=kind, latent_dim=32, ff_dim=64, num_layers=1, num_heads=2, pointnet_hidden=(16, 32),
@@ -397,10 +397,10 @@ def _observations(batch: int, scene_aware: bool, num_points: int = 128, seed: in
 def test_policy_onnx_and_torchscript_match_torch(kind: str, scene_aware: bool, tmp_path: Path) -> None:
     import onnxruntime
 
-    from crisp_gym.export.policy import export_policy
+    from crisp_gym.export.policy import export_inference_policy
 
     actor = _tiny_actor(kind, scene_aware)
-    files = {p.name: p for p in export_policy(actor, tmp_path)}
+    files = {p.name: p for p in export_inference_policy(actor, tmp_path)}
     session = onnxruntime.InferenceSession(str(files["policy.onnx"]))
     scripted = torch.jit.load(str(files["policy.pt"]))
     for batch, num_points in ((1, 128), (6, 40)):
@@ -447,8 +447,10 @@ def test_policy_layout_describes_the_env_observation() -> None:
 
 
 def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
-    from crisp_gym.train.models import ModelConfig
-    from crisp_gym.train.ppo import build_agent, cpu_profile, load_policy, save_checkpoint
+    from crisp_gym.policy.networks import ModelConfig
+    from crisp_gym.train.checkpoints import load_policy, save_checkpoint
+    from crisp_gym.train.config import cpu_profile
+    from crisp_gym.train.ppo import build_agent
 
     cfg = cpu_profile(output=tmp_path / "run", model=ModelConfig(actor="mlp", mlp_actor_hidden=(32,), critic_hidden=(32,),
                                                                   init_action_std=0.1))
@@ -522,7 +524,7 @@ def test_onnx_export_without_its_extra_names_it(tmp_path: Path, monkeypatch) -> 
     monkeypatch.setattr(policy_export.importlib.util, "find_spec",
                         lambda name, *a: None if name == "onnxscript" else real(name, *a))
     with pytest.raises(ModuleNotFoundError, match=r"onnxscript: pip install 'crisp-gym\[export\]'"):
-        policy_export.export_policy(_tiny_actor("mlp", False), tmp_path / "out")
+        policy_export.export_inference_policy(_tiny_actor("mlp", False), tmp_path / "out")
     assert not (tmp_path / "out" / "policy.onnx").exists()
 
 

@@ -37,7 +37,7 @@ from tests.conftest import sway_motion
 from tests.test_bvh import BVH_TO_OURS, CMU_UNIT, cgspeed_joints, pose_rotations, write_bvh
 from tests.test_import_motion import _protomotions_file
 from tests.test_recon_io import _npz_arrays, _write_tum
-from crisp_gym.train.ppo import load_policy
+from crisp_gym.train.checkpoints import load_policy
 
 MAX_BYTES = 2 * 1024**3
 MODEL = build_humanoid()

@@ -138,7 +138,7 @@ def test_reconstruct_killed_keeps_a_whole_clip(tmp_path, kills, small_video_inpu
 def test_train_killed_keeps_a_checkpoint_that_resumes(tmp_path, kills):
     """A killed run keeps its last checkpoint whole (it loads, and never goes back in time), and
     ``--resume`` finishes the run."""
-    from crisp_gym.train.ppo import load_checkpoint
+    from crisp_gym.policy.files import load_checkpoint
 
     run = tmp_path / "run"
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from crisp_gym.train.models import (
+from crisp_gym.policy.networks import (
     ACTION_DIM,
     PROPRIO_DIM,
     TARGET_DIM,
@@ -136,7 +136,7 @@ def test_limited_statistics_weigh_new_data_as_if_that_many_samples_had_been_seen
     assert stats.count.item() == 1_500
     stats.limit_count(1e9)  # a limit above the count changes nothing
     assert stats.count.item() == 1_500
-    from crisp_gym.train.ppo import TrainConfig
+    from crisp_gym.train.config import TrainConfig
 
     with pytest.raises(ValueError, match="init_stats_samples"):
         TrainConfig(init_stats_samples=0)
@@ -187,7 +187,9 @@ def test_training_reward_caps_the_energy_penalty_and_scales() -> None:
 def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
     from torchrl.envs.utils import check_env_specs
 
-    from crisp_gym.train.ppo import make_env, paper_profile
+    from crisp_gym.train.config import paper_profile
+
+    from crisp_gym.train.ppo import make_env
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4, scene_aware=True), seed=0)
     check_env_specs(env)
@@ -208,7 +210,9 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
     """``estimate_values`` + value-less GAE gives TorchRL's two-pass GAE, episode ends included."""
     from torchrl.objectives.value import GAE
 
-    from crisp_gym.train.ppo import build_agent, estimate_values, make_env, paper_profile
+    from crisp_gym.train.config import paper_profile
+
+    from crisp_gym.train.ppo import build_agent, estimate_values, make_env
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4), seed=1)
     agent = build_agent(SMALL_MLP, env.observation_spec["targets"].shape[-2], 0)
@@ -228,7 +232,7 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
 
 
 def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  # noqa: F821
-    from crisp_gym.train.ppo import cpu_profile
+    from crisp_gym.train.config import cpu_profile
 
     # unscaled rewards: the learning rates here suit the critic regressing the env's own returns
     base = dict(clip=str(clip_dir), output=output, num_envs=16, steps_per_env=32, minibatch_size=256, epochs=4,
@@ -246,7 +250,9 @@ def trained_run(clip_dir: Path, tmp_path_factory):
     frames of PPO must show a measurable improvement.
     """
     from crisp_gym.train.evaluate import evaluate
-    from crisp_gym.train.ppo import load_checkpoint, load_policy, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.checkpoints import load_policy
+    from crisp_gym.train.ppo import train
 
     output = tmp_path_factory.mktemp("run")
     cfg = _tiny_config(clip_dir, output, frames=0)
@@ -291,7 +297,9 @@ def test_progress_csv_and_config(trained_run) -> None:
 
 
 def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import load_checkpoint, load_policy, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.checkpoints import load_policy
+    from crisp_gym.train.ppo import train
 
     cfg, result, _, _ = trained_run
     state = load_checkpoint(cfg.output)
@@ -318,7 +326,9 @@ def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
 
 
 def test_save_load_agent_exact(tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import build_agent, load_policy, paper_profile, save_checkpoint
+    from crisp_gym.train.checkpoints import load_policy, save_checkpoint
+    from crisp_gym.train.config import paper_profile
+    from crisp_gym.train.ppo import build_agent
 
     cfg = paper_profile(output=tmp_path, scene_aware=True, model=TINY_TRANSFORMER)
     agent = build_agent(cfg.model, K, N_POINTS)
@@ -342,7 +352,7 @@ def test_scene_aware_transformer_trains(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_cli(clip_dir: Path, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import main
+    from crisp_gym.train.cli import main
 
     out = tmp_path / "cli"
     assert main(["--profile", "cpu", "--clip", str(clip_dir), "--scene-aware", "--frames", "64", "--num-envs", "2",
@@ -354,7 +364,8 @@ def test_cli(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import load_checkpoint, make_env, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import make_env, train
 
     def env_fn(cfg, seed):
         env = make_env(cfg, seed)
@@ -376,7 +387,8 @@ def test_interrupt_saves_checkpoint(clip_dir: Path, tmp_path: Path) -> None:
 
 
 def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import RunLogger, run_wall_time
+    from crisp_gym.policy.files import run_wall_time
+    from crisp_gym.train.run_log import RunLogger
 
     logger = RunLogger(tmp_path, append=False)
     for i in range(1, 6):
@@ -394,7 +406,8 @@ def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> No
 
 
 def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import load_checkpoint, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=256, actor_lr=1e-4, critic_lr=1e-3)
     train(cfg)
@@ -407,11 +420,12 @@ def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, 
     """``init_from`` a policy file: the new run starts from its actor (normaliser included, so no
     iteration only gathers statistics); during the critic warm-up only the critic moves; after
     it the actor trains; a different architecture is refused."""
-    from crisp_gym.train.ppo import export_policy, load_checkpoint, train
+    from crisp_gym.policy.files import load_checkpoint, write_policy_file
+    from crisp_gym.train.ppo import train
 
     source = tmp_path / "source"
     train(_tiny_config(clip_dir, source, num_envs=4, frames=512))
-    policy = export_policy(source, tmp_path / "shipped")
+    policy = write_policy_file(source, tmp_path / "shipped")
     original = load_checkpoint(source)["actor"]
     weights = [k for k in original if "normalizer" not in k]
 
@@ -429,7 +443,7 @@ def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, 
         train(replace(warm, output=tmp_path / "other", model=TINY_TRANSFORMER))
 
     # a milestone keeps the critic: the next run starts with both networks and no warm-up
-    milestone = export_policy(source, tmp_path / "milestone", with_critic=True)
+    milestone = write_policy_file(source, tmp_path / "milestone", with_critic=True)
     assert "critic" not in torch.load(policy, weights_only=True)
     resumed = train(replace(warm, output=tmp_path / "from_milestone", init_from=milestone, frames=128))
     assert resumed.history[0]["kl_approx"] != 0.0  # the actor trained in the first iteration
@@ -488,10 +502,10 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
     import sys
     import time
 
-    from crisp_gym.train.ppo import load_checkpoint
+    from crisp_gym.policy.files import load_checkpoint
 
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "crisp_gym.train.ppo", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
+    command = [sys.executable, "-m", "crisp_gym.train.cli", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
                "--num-envs", "2", "--steps-per-env", "16", "--checkpoint-every", "1000", "--no-progress",
                "--model.mlp-actor-hidden", "32", "--model.critic-hidden", "32"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -510,7 +524,8 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
 
 
 def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path, tmp_path: Path) -> None:
-    from crisp_gym.train.ppo import load_checkpoint, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, start_sampling="adaptive")
     train(cfg)
@@ -525,7 +540,8 @@ def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, mon
     """``best.pt`` holds the weights of the best evaluation (RSI success + share tracked from
     frame 0), not the last one; a resumed run only replaces it with a better one."""
     from crisp_gym.train import evaluate
-    from crisp_gym.train.ppo import load_checkpoint, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import train
 
     scores = iter([(0.5, 20), (0.9, 89), (0.2, 10), (0.8, 80), (0.95, 89)])
 
@@ -548,7 +564,7 @@ def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, mon
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -1e-4])
 def test_rates_that_no_optimiser_can_use_are_refused_by_the_config(clip_dir: Path, field: str, value: float) -> None:
     """``--actor-lr nan`` was accepted until the first update failed with "actions must be finite"."""
-    from crisp_gym.train.ppo import TrainConfig
+    from crisp_gym.train.config import TrainConfig
 
     with pytest.raises(ValueError, match=f"{field}=.*must be positive and finite"):
         TrainConfig(clip=str(clip_dir), **{field: value})
@@ -557,7 +573,8 @@ def test_rates_that_no_optimiser_can_use_are_refused_by_the_config(clip_dir: Pat
 def test_files_that_are_not_runs_get_a_one_line_error(tmp_path: Path) -> None:
     """A random ``.pt`` to eval gave "pop from empty list"; a resume without a checkpoint a bare
     FileNotFoundError traceback. Each now names the file and what it is not."""
-    from crisp_gym.train.ppo import load_checkpoint, load_policy
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.checkpoints import load_policy
 
     torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt is neither a crisp-gym training checkpoint nor a policy file"):
@@ -595,7 +612,7 @@ def test_training_scalars_reach_torchrl_loggers(clip_dir: Path, tmp_path: Path) 
 
 
 def test_an_unknown_logger_is_named() -> None:
-    from crisp_gym.train.ppo import TrainConfig
+    from crisp_gym.train.config import TrainConfig
 
     with pytest.raises(ValueError, match=r"unknown loggers \['neptune'\]; TorchRL's are csv, tensorboard"):
         TrainConfig(loggers=("neptune",))
@@ -606,7 +623,8 @@ def test_collection_on_two_ray_workers_trains_with_their_frames(clip_dir: Path, 
     its own batched env; an iteration has both workers' frames, the losses are finite, and the
     checkpoint resumes like any other."""
     pytest.importorskip("ray")
-    from crisp_gym.train.ppo import load_checkpoint, train
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import train
 
     cfg = _tiny_config(clip_dir, tmp_path / "run", frames=4 * 2 * 16 * 8, num_envs=16, steps_per_env=8,
                        minibatch_size=64, ray_workers=2)

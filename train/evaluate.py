@@ -47,7 +47,7 @@ from tqdm.auto import tqdm
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.envs.tracking import terms_from_info
 from crisp_gym.html_report import Section, rows_from, write_html_report
-from crisp_gym.train.models import ACTION_DIM
+from crisp_gym.policy.networks import ACTION_DIM
 
 SEGMENT_FRAMES = 100
 BODY_GROUPS = {
@@ -590,7 +590,8 @@ def run_eval(args: EvalArgs) -> dict[str, Any]:
     Without ``--clip`` every clip the policy was trained on is evaluated; with several, each
     gets its own subdirectory of ``--output`` and ``report.json`` there sums them up.
     """
-    from crisp_gym.train.ppo import load_policy, policy_training_stats
+    from crisp_gym.policy.files import policy_training_stats
+    from crisp_gym.train.checkpoints import load_policy
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")

@@ -5,7 +5,7 @@
 writes into ``-o``:
 
 * ``policy.pt``: the actor (state dict, normaliser statistics, config, training totals; see
-  :func:`crisp_gym.train.ppo.export_policy`), what ``crisp demo`` and ``crisp eval`` load;
+  :func:`crisp_gym.policy.files.write_policy_file`), what ``crisp demo`` and ``crisp eval`` load;
 * ``progress.csv``: the run's training log (6 significant digits);
 * ``learning_curve.png``: success rate and mean return of the episodes that ended in each
   iteration, against training frames;
@@ -116,12 +116,13 @@ def ship(args: ShipArgs) -> dict:
     import shutil
 
     from crisp_gym.train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
-    from crisp_gym.train.ppo import BEST_NAME, export_policy, load_policy, policy_training_stats
+    from crisp_gym.policy.files import BEST_NAME, policy_training_stats, write_policy_file
+    from crisp_gym.train.checkpoints import load_policy
 
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)
     source = Path(args.run) / BEST_NAME if args.best else Path(args.run)
-    policy = export_policy(source, args.output, clip=args.clip, with_critic=args.with_critic)
+    policy = write_policy_file(source, args.output, clip=args.clip, with_critic=args.with_critic)
     write_progress(progress, args.output / "progress.csv")
     actor, cfg = load_policy(policy)
     clips = policy_clips(cfg.clip)

@@ -92,12 +92,12 @@ def reference_track(clip: Clip) -> Track:
 def policy_track(policy_source: str | Path, clip: str | Path) -> Track:
     """The policy's simulated humanoid from frame 0 of ``clip``, until the episode ends."""
     from crisp_gym.envs.track import CrispTrackEnv  # noqa: PLC0415
+    from crisp_gym.policy.files import load_actor  # noqa: PLC0415
     from crisp_gym.train.evaluate import torch_policy  # noqa: PLC0415
-    from crisp_gym.train.ppo import load_policy  # noqa: PLC0415
 
-    actor, cfg = load_policy(policy_source)
-    policy = torch_policy(actor, cfg.scene_aware)
-    env = CrispTrackEnv(clip=str(clip), scene_aware=cfg.scene_aware)
+    loaded = load_actor(policy_source)
+    policy = torch_policy(loaded.actor, loaded.scene_aware)
+    env = CrispTrackEnv(clip=str(clip), scene_aware=loaded.scene_aware)
     obs, _ = env.reset(seed=0, options={"start_frame": 0})
     ids = humanoid_body_ids(env.model)
     pos, quat = [env.data.xpos[ids].copy()], [env.data.xquat[ids].copy()]
@@ -183,7 +183,7 @@ def policy_and_clip(args: ViewArgs) -> tuple[Path | None, str]:
     config = source / "config.json" if source.is_dir() else None
     if config is not None and config.is_file():
         return source, json.loads(config.read_text())["clip"][0]
-    from crisp_gym.train.ppo import load_policy  # noqa: PLC0415
+    from crisp_gym.train.checkpoints import load_policy  # noqa: PLC0415
 
     return source, load_policy(source)[1].clip[0]
 

@@ -23,13 +23,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.tracking import PROPRIO_DIM, TARGET_DIM, hinge_ranges
+from crisp_gym.export import POLICY_FORMATS
 from crisp_gym.export.actuators import actuator_table
-from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid
+from crisp_gym.policy.files import load_actor
 
-POLICY_FORMATS = ("onnx", "torchscript")
 ONNX_OPSET = 18
 
 _HEADING = ("heading frame: the world frame turned about +z by the pelvis yaw, "
@@ -48,7 +49,7 @@ class DeterministicPolicy(nn.Module):
         super().__init__()
         inner = getattr(actor, "actor", actor)  # FixedStdGaussian wraps the mean network
         if not hasattr(inner, "normalizer") or not hasattr(inner, "scene_aware"):
-            raise ValueError(f"expected a crisp-gym actor (crisp_gym.train.models), got {type(actor).__name__}")
+            raise ValueError(f"expected a crisp-gym actor (crisp_gym.policy.networks), got {type(actor).__name__}")
         self.actor = copy.deepcopy(inner).cpu()  # leaves the caller's module (mode, device) alone
         self.eval()
         self.scene_aware = bool(inner.scene_aware)
@@ -138,7 +139,7 @@ def policy_layout(track: TrackConfig, scene_aware: bool, num_future_frames: int,
     }
 
 
-def export_policy(actor: nn.Module, directory: str | Path, track: TrackConfig | None = None,
+def export_inference_policy(actor: nn.Module, directory: str | Path, track: TrackConfig | None = None,
                   formats: tuple[str, ...] = POLICY_FORMATS, obs_clip: float | None = 5.0) -> list[Path]:
     """Write ``actor`` as ``policy.onnx`` / ``policy.pt`` and ``policy.json`` into ``directory``.
 
@@ -185,11 +186,9 @@ def export_policy(actor: nn.Module, directory: str | Path, track: TrackConfig | 
 
 def export_checkpoint(checkpoint: str | Path, directory: str | Path,
                       formats: tuple[str, ...] = POLICY_FORMATS) -> list[Path]:
-    """Export the actor of a ``crisp train`` checkpoint (file or run directory) with :func:`export_policy`."""
-    from crisp_gym.train.ppo import load_policy
-
-    actor, cfg = load_policy(checkpoint)
-    policy = DeterministicPolicy(actor)
-    track = TrackConfig(scene_aware=cfg.scene_aware, num_future_frames=policy.num_future_frames)
-    clip = cfg.model.obs_clip if cfg.normalize_obs else None
-    return export_policy(actor, directory, track, formats, obs_clip=clip)
+    """Export the actor of a ``crisp train`` checkpoint (file or run directory) with :func:`export_inference_policy`."""
+    loaded = load_actor(checkpoint)
+    policy = DeterministicPolicy(loaded.actor)
+    track = TrackConfig(scene_aware=loaded.scene_aware, num_future_frames=policy.num_future_frames)
+    clip = loaded.model.obs_clip if loaded.normalize_obs else None
+    return export_inference_policy(loaded.actor, directory, track, formats, obs_clip=clip)

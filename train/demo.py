@@ -25,9 +25,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from crisp_gym.registry import PROJECT_ROOT
-
-SHIPPED_POLICIES = PROJECT_ROOT / "assets" / "policies"
+from crisp_gym.bundled import SHIPPED_POLICIES, display_path
 
 
 @dataclass(frozen=True)
@@ -69,8 +67,8 @@ def shipped_policy(clip: str) -> Path | None:
 
 def run_demo(args: DemoArgs) -> dict[str, Any]:
     """Evaluate, write the outputs and return the report."""
+    from crisp_gym.policy.files import load_actor, policy_training_stats
     from crisp_gym.train.evaluate import evaluate_policy, torch_policy, write_outputs, zero_policy
-    from crisp_gym.train.ppo import load_policy, policy_training_stats
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
@@ -82,11 +80,12 @@ def run_demo(args: DemoArgs) -> dict[str, Any]:
         print(f"no policy shipped for {args.clip!r}: evaluating the PD-reference controller alone")
         report, rollout = {"clip": args.clip, **baseline}, baseline_rollout
     else:
-        actor, cfg = load_policy(policy_path)
-        metrics, rollout = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
-                                           seed=args.seed, scene_aware=cfg.scene_aware, render=args.video)
-        report = {"clip": args.clip, "controller": "policy", "policy": _display_path(policy_path),
-                  "actor": cfg.model.actor, "training": policy_training_stats(policy_path), **metrics,
+        policy = load_actor(policy_path)
+        metrics, rollout = evaluate_policy(torch_policy(policy.actor, policy.scene_aware), args.clip,
+                                           episodes=args.episodes, seed=args.seed, scene_aware=policy.scene_aware,
+                                           render=args.video)
+        report = {"clip": args.clip, "controller": "policy", "policy": display_path(policy_path),
+                  "actor": policy.model.actor, "training": policy_training_stats(policy_path), **metrics,
                   "comparison": {"pd_reference": baseline}}
     write_outputs(rollout, report, args.output, f"{args.clip}: {report['controller']}")
     return report
@@ -125,14 +124,6 @@ def join_videos(videos: dict[str, Path], path: Path) -> None:
                     cv2.putText(frame, caption, (16, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.1, (255, 255, 255), 2,
                                 cv2.LINE_AA)
                     writer.append_data(frame)
-
-
-def _display_path(path: Path) -> str:
-    """``path`` relative to the project when it is inside it (reports stay machine-independent)."""
-    try:
-        return str(Path(path).resolve().relative_to(PROJECT_ROOT))
-    except ValueError:
-        return str(path)
 
 
 def main(argv: list[str] | None = None) -> int:

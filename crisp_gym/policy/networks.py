@@ -2,7 +2,8 @@
 
 Every module here is plain torch: it takes the observation tensors (``proprio`` (…, 361),
 ``targets`` (…, K, 432) and, scene-aware, ``points`` (…, N, 3)) with any number of leading
-batch dimensions and returns tensors. TorchRL wraps them in :mod:`crisp_gym.train.ppo`.
+batch dimensions and returns tensors. TorchRL wraps them in :mod:`crisp_gym.train.ppo`; a trained
+actor is read back from its file by :mod:`crisp_gym.policy.files`.
 
 * :class:`TransformerActor`: the paper's actor. One token from the proprioception, one per
   future target frame and, scene-aware, ``num_point_tokens`` tokens from a :class:`PointNet`
@@ -28,9 +29,10 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-PROPRIO_DIM = 361
-TARGET_DIM = 432
-ACTION_DIM = 69
+from crisp_gym.envs.tracking import PROPRIO_DIM, TARGET_DIM
+from crisp_gym.humanoid import DOF_NAMES
+
+ACTION_DIM = len(DOF_NAMES)  # one PD target per hinge
 
 
 @dataclass(frozen=True)
