@@ -18,7 +18,7 @@ import numpy as np
 from crisp_gym.balance import motion_balance
 from crisp_gym.metrics import motion_plausibility
 from crisp_gym.registry import load_clip
-from crisp_gym.reconstruct.synth import BUNDLED, KINDS, make_clip
+from crisp_gym.synth.clips import BUNDLED, KINDS, make_clip
 
 
 def _row(name: str, kind: str, seed: int, boxes, motion, seconds: float | None) -> str:

@@ -35,7 +35,8 @@ import tyro
 from crisp_gym.humanoid import DOF_NAMES
 from crisp_gym.reconstruct.pipeline import ReconstructArgs
 from crisp_gym.reconstruct.pipeline import run as run_reconstruct
-from crisp_gym.reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input
+from crisp_gym.synth.truth import write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, render_synth_video
 from crisp_gym.train.evaluate import Rollout, evaluate_policy, torch_policy, zero_policy
 from crisp_gym.policy.files import CHECKPOINT_NAME, load_checkpoint
 from crisp_gym.train.checkpoints import load_policy

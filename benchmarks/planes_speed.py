@@ -2,7 +2,7 @@
 
     python benchmarks/planes_speed.py --index 0     # 300 frames, 512x384, the suite's first video
 
-The input is a video of the synthetic benchmark suite (:func:`crisp_gym.reconstruct.synth_video.benchmark_suite`:
+The input is a video of the synthetic benchmark suite (:func:`crisp_gym.synth.video.benchmark_suite`:
 stairs up, a platform, a seat, stairs down in turn, with background boxes, a moving handheld
 camera, monocular-like depth noise), rendered with 300 frames at 512x384 and brought to metres
 and the true world frame with its ground truth, person pixels removed, so that only planar
@@ -38,7 +38,7 @@ from crisp_gym.metrics import box_signed_distance
 from crisp_gym.scene import Box
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.planes import PlaneFitConfig, fit_planes
-from crisp_gym.reconstruct.synth_video import SynthVideoConfig, benchmark_suite, render_synth_video
+from crisp_gym.synth.video import SynthVideoConfig, benchmark_suite, render_synth_video
 
 PLANE_COSINE = np.cos(np.radians(18.0))
 PLANE_OFFSET = 0.05

@@ -4,7 +4,7 @@
     python benchmarks/recon_quality.py --contact-ablation --seeds 6 --out results/contact_ablation
 
 Each case renders a synthetic video (noisy monocular-like depth, unknown scale and gravity, a
-moving camera; :mod:`crisp_gym.reconstruct.synth_video`), writes it as ``crisp reconstruct`` input, reads it
+moving camera; :mod:`crisp_gym.synth.video`), writes it as ``crisp reconstruct`` input, reads it
 back and runs the pipeline. The reconstruction is compared with the ground truth after the only
 transform the pipeline is free to choose: the world's heading and horizontal origin, fitted on the
 human's pelvis path (scale, gravity and floor height errors stay in the numbers).
@@ -44,15 +44,8 @@ from crisp_gym.reconstruct.metrics import (
     support_coverage,
 )
 from crisp_gym.reconstruct.pipeline import Reconstruction, reconstruct
-from crisp_gym.reconstruct.synth_video import (
-    SynthSpec,
-    SynthVideoConfig,
-    benchmark_suite,
-    load_ground_truth,
-    occluded_suite,
-    render_synth_video,
-    write_synth_input,
-)
+from crisp_gym.synth.truth import load_ground_truth, write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video
 
 ROI_MARGIN = 2.5  # m around the pelvis path: the pipeline's own filter radius (precision)
 SUPPORT_MARGIN = 1.0  # m around the pelvis path: the surfaces a person there could use (completeness)

@@ -1,14 +1,14 @@
 """Synthetic depth videos and alignment: render speed, and alignment accuracy on the benchmark suite.
 
-Speed (one run, same poses): :func:`crisp_gym.reconstruct.synth_video.render_synth_video` for a
+Speed (one run, same poses): :func:`crisp_gym.synth.video.render_synth_video` for a
 ``--speed-frames`` video at ``--size`` (depth, RGB, masks and the whole noise model, with the
 time per stage), and its ray casting against the baseline of ray-casting the same frames with
 :class:`crisp_gym.reconstruct.raycast.DepthRenderer` (depth and ids only).
 
-Accuracy: every case of :func:`crisp_gym.reconstruct.synth_video.benchmark_suite` (default noise: unknown
+Accuracy: every case of :func:`crisp_gym.synth.video.benchmark_suite` (default noise: unknown
 scale, drift, distortion, per-pixel noise, flying pixels) is aligned from its camera-frame
 motion; the table gives the scale error, the gravity error and the floor's height error under
-the person's path (:func:`crisp_gym.reconstruct.synth_video.alignment_errors`).
+the person's path (:func:`crisp_gym.synth.truth.alignment_errors`).
 
     python benchmarks/synth_align.py --seeds 10 --size 512x384
 """
@@ -26,14 +26,8 @@ from crisp_gym.reconstruct.align import align
 from crisp_gym.reconstruct.body_mesh import BodyMesher
 from crisp_gym.reconstruct.io import MotionInput
 from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
-from crisp_gym.reconstruct.synth_video import (
-    SynthSpec,
-    SynthVideoConfig,
-    alignment_errors,
-    benchmark_suite,
-    occluded_suite,
-    render_synth_video,
-)  # fmt: skip
+from crisp_gym.synth.truth import alignment_errors
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -141,6 +141,19 @@ def plain_clip_name(text: str) -> str:
     return check_clip_name(name if _CLIP_NAME.fullmatch(name) else f"_{name}")
 
 
+def write_registry(path: Path, clips: dict[str, tuple[str | Path, list[str]]], header: str = "") -> Path:
+    """Write a registry file of ``clips`` (name -> (directory, tags)), replacing it; directories below
+    the registry's folder are written relative to it, so the registry moves with its clips."""
+    entries = {}
+    for name, (clip_dir, tags) in clips.items():
+        clip_dir = Path(clip_dir).resolve()
+        if clip_dir.is_relative_to(path.resolve().parent):
+            clip_dir = clip_dir.relative_to(path.resolve().parent)
+        entries[check_clip_name(name)] = {"path": clip_dir.as_posix(), "tags": list(tags)}
+    comment = f"# {header}\n" if header else ""
+    return write_text(path, comment + yaml.safe_dump({"clips": entries}, sort_keys=True))
+
+
 def register_clip(name: str, path: str | Path, tags: list[str] | None = None,
                   registry: Path | None = None) -> Path:
     """Add (or replace) a clip in the user registry; returns the registry file."""

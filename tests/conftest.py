@@ -15,7 +15,8 @@ from crisp_gym.clip import write_clip  # noqa: E402
 from crisp_gym.humanoid import DOF_NAMES, build_humanoid  # noqa: E402
 from crisp_gym.motion import Motion, ground  # noqa: E402
 from crisp_gym.scene import Box, floor_box  # noqa: E402
-from crisp_gym.reconstruct.synth_video import SynthSpec, SynthVideoConfig, render_synth_video, write_synth_input  # noqa: E402
+from crisp_gym.synth.truth import write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, render_synth_video  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -13,15 +13,9 @@ from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import compute_kinematics
 from crisp_gym.reconstruct.align import AlignConfig, align, depth_drift, remove_person, transform_motion
 from crisp_gym.reconstruct.io import MotionInput, read_frames, read_motion
-from crisp_gym.reconstruct.synth_video import (
-    DepthNoise,
-    SynthSpec,
-    SynthVideoConfig,
-    alignment_errors,
-    load_ground_truth,
-    render_synth_video,
-    write_synth_input,
-)  # fmt: skip
+from crisp_gym.synth.depth_noise import DepthNoise
+from crisp_gym.synth.truth import alignment_errors, load_ground_truth, write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, render_synth_video  # fmt: skip
 
 CONFIG = SynthVideoConfig(width=128, height=96)  # whole clips: the depth errors drift over seconds
 

@@ -9,7 +9,7 @@ import pytest
 from crisp_gym.balance import GRAVITY, distance_outside_hull, motion_balance
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion
-from crisp_gym.reconstruct.synth import KINDS, make_clip
+from crisp_gym.synth.clips import KINDS, make_clip
 
 
 def _standing(frames: int, root_x: np.ndarray | None = None) -> Motion:

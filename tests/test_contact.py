@@ -20,7 +20,7 @@ from crisp_gym.reconstruct.contact import (
     NUM_SMPL_VERTICES, PART_OF, PARTS, CompletionConfig, ContactEvidence, FilterConfig, body_geometry,
     complete_support, contact_labels, filter_contacts, kinematic_contacts, load_external_contacts, save_contacts,
 )  # fmt: skip
-from crisp_gym.reconstruct.synth import make_clip
+from crisp_gym.synth.clips import make_clip
 
 SURFACE_TOLERANCE = 0.05  # m: the bound on a contact box's top
 SUPPORT_NAMES = ("seat", "platform", "landing")  # boxes a person rests on (besides step_*)

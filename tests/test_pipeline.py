@@ -19,7 +19,8 @@ from crisp_gym.motion import compute_kinematics
 from crisp_gym.reconstruct import pipeline
 from crisp_gym.reconstruct.metrics import heading_alignment
 from crisp_gym.reconstruct.planes import PlaneFitConfig
-from crisp_gym.reconstruct.synth_video import SynthSpec, SynthVideoConfig, load_ground_truth, render_synth_video, write_synth_input
+from crisp_gym.synth.truth import load_ground_truth, write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, render_synth_video
 
 
 @pytest.fixture(scope="module")

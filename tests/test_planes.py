@@ -12,7 +12,7 @@ from crisp_gym.scene import Box, floor_box
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.planes import PlaneFitConfig, fit_planes
 from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
-from crisp_gym.reconstruct.synth import PlatformParams, SeatParams, StairsParams, platform_boxes, seat_boxes, stairs_boxes
+from crisp_gym.synth.scenes import PlatformParams, SeatParams, StairsParams, platform_boxes, seat_boxes, stairs_boxes
 
 STAIRS = StairsParams(riser=0.15, tread=0.30, width=1.2, count=4, start=1.5, landing=1.4)
 FEW_FRAMES = PlaneFitConfig(min_group_frames=2)

@@ -20,7 +20,7 @@ from crisp_gym.reconstruct.metrics import (
     surface_mesh,
 )
 from crisp_gym.reconstruct.raycast import box_mesh
-from crisp_gym.reconstruct.synth import StairsParams, stairs_boxes
+from crisp_gym.synth.scenes import StairsParams, stairs_boxes
 from tests.conftest import sway_motion
 
 SLAB = Box(center=[0.0, 0.0, -0.05], half_size=[1.0, 1.0, 0.05])  # top face: the 2 x 2 m square at z = 0

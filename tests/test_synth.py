@@ -11,8 +11,8 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, joint_range_deg
 from crisp_gym.metrics import motion_plausibility, scene_model, sole_points, support_tops
 from crisp_gym.registry import BUNDLED_REGISTRY, _read, load_clip
-from crisp_gym.reconstruct import synth
-from crisp_gym.reconstruct.synth import BUNDLED, KINDS, make_clip
+from crisp_gym.synth import clips, scenes
+from crisp_gym.synth.clips import BUNDLED, KINDS, make_clip
 
 SEED = 3
 
@@ -45,18 +45,18 @@ def test_unknown_kind_is_a_clear_error():
 def test_scene_parameters_stay_in_human_ranges():
     for seed in range(20):
         rng = np.random.default_rng(seed)
-        stairs = synth.sample_stairs_params(rng)
-        assert synth.RISER_RANGE[0] <= stairs.riser <= synth.RISER_RANGE[1]
-        assert synth.TREAD_RANGE[0] <= stairs.tread <= synth.TREAD_RANGE[1]
-        assert synth.STAIR_COUNT_RANGE[0] <= stairs.count <= synth.STAIR_COUNT_RANGE[1]
-        platform = synth.sample_platform_params(rng)
-        assert synth.PLATFORM_HEIGHT_RANGE[0] <= platform.height <= synth.PLATFORM_HEIGHT_RANGE[1]
-        seat = synth.sample_seat_params(rng)
-        assert synth.SEAT_HEIGHT_RANGE[0] <= seat.height <= synth.SEAT_HEIGHT_RANGE[1]
-    boxes = synth.stairs_boxes(synth.StairsParams(riser=0.15, tread=0.3, width=1.0, count=4, start=1.0, landing=1.0))
+        stairs = scenes.sample_stairs_params(rng)
+        assert scenes.RISER_RANGE[0] <= stairs.riser <= scenes.RISER_RANGE[1]
+        assert scenes.TREAD_RANGE[0] <= stairs.tread <= scenes.TREAD_RANGE[1]
+        assert scenes.STAIR_COUNT_RANGE[0] <= stairs.count <= scenes.STAIR_COUNT_RANGE[1]
+        platform = scenes.sample_platform_params(rng)
+        assert scenes.PLATFORM_HEIGHT_RANGE[0] <= platform.height <= scenes.PLATFORM_HEIGHT_RANGE[1]
+        seat = scenes.sample_seat_params(rng)
+        assert scenes.SEAT_HEIGHT_RANGE[0] <= seat.height <= scenes.SEAT_HEIGHT_RANGE[1]
+    boxes = scenes.stairs_boxes(scenes.StairsParams(riser=0.15, tread=0.3, width=1.0, count=4, start=1.0, landing=1.0))
     tops = sorted(round(b.top_height(), 3) for b in boxes[1:])
     assert tops == [0.15, 0.3, 0.45, 0.6]  # three treads and the landing
-    assert [b.name for b in synth.seat_boxes(synth.SeatParams(0.45, 0.45, 0.45, -0.1, 0.4))] == \
+    assert [b.name for b in scenes.seat_boxes(scenes.SeatParams(0.45, 0.45, 0.45, -0.1, 0.4))] == \
         ["floor", "seat", "backrest"]
 
 
@@ -164,7 +164,7 @@ def test_bundled_clips_are_what_the_generator_makes():
 
 
 def test_cli_generates_and_registers_one_more_clip(tmp_path, capsys):
-    assert synth.main(["--kind", "platform_step", "--seed", "4", "--name", "step4", "--out-dir", str(tmp_path)]) == 0
+    assert clips.main(["--kind", "platform_step", "--seed", "4", "--name", "step4", "--out-dir", str(tmp_path)]) == 0
     clip = load_clip("step4")
     boxes, motion, _ = _clip("platform_step", 4)
     assert clip.path == tmp_path / "step4" and clip.meta["seed"] == 4

@@ -14,20 +14,13 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import compute_kinematics
-from crisp_gym.reconstruct import synth_video
+from crisp_gym.synth import truth, video_cli
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.io import read_frames, read_motion
 from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
-from crisp_gym.reconstruct.synth_video import (
-    DepthNoise,
-    SynthSpec,
-    SynthVideoConfig,
-    benchmark_suite,
-    load_ground_truth,
-    occluded_suite,
-    render_synth_video,
-    write_synth_input,
-)  # fmt: skip
+from crisp_gym.synth.depth_noise import DepthNoise
+from crisp_gym.synth.truth import load_ground_truth, write_synth_input
+from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video  # fmt: skip
 
 SMALL = SynthVideoConfig(width=96, height=72, frames=40)
 ONLY = {name: replace(DepthNoise.clean(), **{name: value}) for name, value in
@@ -179,7 +172,7 @@ def test_an_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
     def fail(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(synth_video, "save_camera_smpl", fail)
+    monkeypatch.setattr(truth, "save_camera_smpl", fail)
     with pytest.raises(KeyboardInterrupt):
         write_synth_input(tmp_path / "synth", video)
     assert list(tmp_path.iterdir()) == []
@@ -187,13 +180,13 @@ def test_an_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
 
 def test_command_line_writes_an_input(tmp_path):
     out = tmp_path / "cli"
-    assert synth_video.main(["--kind", "platform_step", "--seed", "1", "--frames", "12", "--size", "64x48",
-                             "-o", str(out)]) == 0
+    assert video_cli.main(["--kind", "platform_step", "--seed", "1", "--frames", "12", "--size", "64x48",
+                           "-o", str(out)]) == 0
     frames = read_frames(out)
     assert frames.image_size == (48, 64) and frames.num_frames == 12
     assert isinstance(frames, Frames) and frames.person_mask.any()
     with pytest.raises(ValueError, match="WIDTHxHEIGHT"):
-        synth_video.main(["--size", "64by48", "-o", str(tmp_path / "x")])
+        video_cli.main(["--size", "64by48", "-o", str(tmp_path / "x")])
 
 
 def test_bad_specs_are_rejected():
