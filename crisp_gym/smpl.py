@@ -196,11 +196,24 @@ def save_smpl_params(motion: Motion, path: str | Path) -> Path:
 
     ``transl`` is the pelvis position, as :func:`load_smpl_params` reads it. Written atomically.
     """
+    return write_smpl_npz(path, motion, frame=SMPL_TO_OURS.T)
+
+
+def write_smpl_npz(path: str | Path, motion: Motion, frame: np.ndarray | None = None,
+                   pelvis_offset: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Path:
+    """Write ``motion`` as SMPL parameters, atomically: ``global_orient`` (T, 3) and ``body_pose``
+    (T, 69) axis-angle, ``transl`` (T, 3) and ``fps``.
+
+    ``frame`` (3, 3) rotates the motion's world into the file's (identity: keep it, e.g. a camera
+    frame); ``transl`` is the pelvis position there minus ``pelvis_offset`` (SMPL's ``transl`` is
+    the body model's origin, not its pelvis, for readers that run the body model).
+    """
+    frame = np.eye(3) if frame is None else np.asarray(frame, dtype=float)
     m = motion.in_humanoid_order()
     t = m.num_frames
     c = SMPL_TO_OURS
     local = np.empty((t, len(BODY_NAMES), 3, 3))
-    local[:, 0] = c.T @ Rotation.from_quat(m.root_quat, scalar_first=True).as_matrix() @ c
+    local[:, 0] = frame @ Rotation.from_quat(m.root_quat, scalar_first=True).as_matrix() @ c
     local[:, 1:] = c.T @ hinge_angles_to_rotations(m.dof_pos.reshape(t, -1, 3)) @ c
     smpl_order = np.empty_like(local)
     smpl_order[:, _BODY_INDEX] = local
@@ -208,5 +221,5 @@ def save_smpl_params(motion: Motion, path: str | Path) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
-                 transl=m.root_pos @ c, fps=np.float64(m.fps))
+                 transl=m.root_pos @ frame.T - np.asarray(pelvis_offset, dtype=float), fps=np.float64(m.fps))
     return path

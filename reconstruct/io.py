@@ -45,12 +45,10 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
-from crisp_gym.atomic import atomic_path
 from crisp_gym.file_errors import reading
-from crisp_gym.humanoid import BODY_NAMES
-from crisp_gym.motion import Motion, hinge_angles_to_rotations
+from crisp_gym.motion import Motion
 from crisp_gym.npz import read_npz
-from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY, SMPL_TO_OURS, load_smpl_params
+from crisp_gym.smpl import load_smpl_params, write_smpl_npz
 from crisp_gym.reconstruct.body_mesh import pixel_rays
 from crisp_gym.reconstruct.frames import Frames
 
@@ -666,16 +664,4 @@ def save_camera_smpl(motion: Motion, path: str | Path, pelvis_offset=SMPL_PELVIS
     ``global_orient`` (T, 3) and ``body_pose`` (T, 69) axis-angle, ``transl`` (T, 3) = pelvis −
     ``pelvis_offset``, ``fps``; all in the motion's (camera) frame. Written atomically.
     """
-    m = motion.in_humanoid_order()
-    t = m.num_frames
-    c = SMPL_TO_OURS
-    local = np.empty((t, len(BODY_NAMES), 3, 3))
-    local[:, 0] = Rotation.from_quat(m.root_quat, scalar_first=True).as_matrix() @ c
-    local[:, 1:] = c.T @ hinge_angles_to_rotations(m.dof_pos.reshape(t, -1, 3)) @ c
-    smpl = np.stack([local[:, BODY_NAMES.index(SMPL_TO_BODY[j])] for j in SMPL_JOINT_NAMES], axis=1)
-    rotvecs = Rotation.from_matrix(smpl.reshape(-1, 3, 3)).as_rotvec().reshape(t, 24, 3)
-    path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, global_orient=rotvecs[:, 0], body_pose=rotvecs[:, 1:].reshape(t, 69),
-                 transl=m.root_pos - np.asarray(pelvis_offset, dtype=float), fps=np.float64(m.fps))
-    return path
+    return write_smpl_npz(path, motion, pelvis_offset=pelvis_offset)

@@ -322,8 +322,8 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path) -> dict:
         train = synthesize(sc, truth, t, u_train, noise, rng)
         test = synthesize(sc, truth, t, u_test, noise, rng)
         size = signature(sc, synthesize(sc, truth, t, u_test, 0.0, rng), dcfg.window_s)
-        (out / "truth" / f"case{i:03d}.json").write_text(
-            json.dumps({**truth, "model": sc.name, "noise": noise, "signature": size}))
+        write_text(out / "truth" / f"case{i:03d}.json",
+                   json.dumps({**truth, "model": sc.name, "noise": noise, "signature": size}))
         result = diagnose([(train, sc.model)], [(test, sc.model)], dcfg)  # the truth stays on disk
         row = {"case": i, "model": sc.name, "noise": noise, "hidden": truth.get("effect", truth.get("kind", "none")),
                "selected": (result.get("selected") or {}).get("effect"), "seconds": result["seconds"],
