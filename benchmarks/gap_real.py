@@ -16,16 +16,16 @@ from pathlib import Path
 import numpy as np
 
 from crisp_gym.sim2real.adapters import load_go2_npz, load_servo_json
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
+from crisp_gym.sim2real.diagnose import DiagnoseConfig, Diagnosis, diagnose
 from crisp_gym.sim2real.report import write_report
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def mae(result: dict, key: str) -> float:
-    rp = result["_replay"]
-    m = rp["mask"][..., None]
-    return float(np.sum(np.abs(rp[key] - rp["target"]) * m) / (m.sum() * rp["target"].shape[-1]))
+def mae(result: Diagnosis, key: str) -> float:
+    rp = result.replay
+    m = rp.mask[..., None]
+    return float(np.sum(np.abs(getattr(rp, key) - rp.target) * m) / (m.sum() * rp.target.shape[-1]))
 
 
 def servo(out: Path) -> None:
@@ -38,37 +38,37 @@ def servo(out: Path) -> None:
         test = [lg for lg in logs if lg[0].meta["kp"] in test_kp]
         res = diagnose(train, test, DiagnoseConfig(show_progress=False))
         write_report(res, out / f"servo_fit{'-'.join(map(str, fit_kp))}")
-        sel = res["selected"] or res["closest"]
+        sel = res.selected or res.closest
         params = ", ".join(f"{p['name']}={p['value']:.3g} [{p['ci95'][0]:.3g}, {p['ci95'][1]:.3g}]"
                            for p in sel["parameters"])
         before = mae(res, "pred_before")
-        after = mae(res, "pred_after") if res["selected"] else before
-        print(f"| {fit_kp} | {test_kp} | {res['verdict']} | {sel['effect']} | {params} | {before:.4f} | "
-              f"{after:.4f} (closest: {mae(res, 'pred_after'):.4f}) | {100 * res['shrink']:.0f} % |")
+        after = mae(res, "pred_after") if res.selected else before
+        print(f"| {fit_kp} | {test_kp} | {res.verdict} | {sel['effect']} | {params} | {before:.4f} | "
+              f"{after:.4f} (closest: {mae(res, 'pred_after'):.4f}) | {100 * res.shrink:.0f} % |")
 
 
 def go2(out: Path) -> None:
     res = diagnose([load_go2_npz(DATA / "go2_fixed_base" / "traj_0.npz")], None,
                    DiagnoseConfig(holdout_fraction=0.3, show_progress=False))
     write_report(res, out / "go2")
-    sel = res["selected"] or res["closest"]
-    print(f"\nGo2: verdict {res['verdict']}, {sel['effect']}; held-out RMS {res['gap_before']:.4f} -> "
-          f"{sel['gap_heldout']:.4f} rad (floor {res['noise_floor']:.4f}); {res['seconds']:.0f} s\n")
-    rp = res["_replay"]
-    r0 = (rp["pred_before"] - rp["target"]) * rp["mask"][..., None]
-    before = dict(zip(res["joints"], np.sqrt(np.sum(r0**2, axis=(0, 1)) / rp["mask"].sum())))
-    singles = [r for r in res["ranking"] if "+" not in r["effect"]]
+    sel = res.selected or res.closest
+    print(f"\nGo2: verdict {res.verdict}, {sel['effect']}; held-out RMS {res.gap_before:.4f} -> "
+          f"{sel['gap_heldout']:.4f} rad (floor {res.noise_floor:.4f}); {res.seconds:.0f} s\n")
+    rp = res.replay
+    r0 = (rp.pred_before - rp.target) * rp.mask[..., None]
+    before = dict(zip(res.joints, np.sqrt(np.sum(r0**2, axis=(0, 1)) / rp.mask.sum())))
+    singles = [r for r in res.ranking if "+" not in r["effect"]]
     print("| joint | PD tracking lag, sim vs command (ms) | real vs command (ms) | transport delay, real vs sim (ms) | "
           "held-out gap before (rad) | dominant single effect | after (rad) | shrink |")
     print("|---|---|---|---|---|---|---|---|")
-    for j, v in res["where"]["per_joint"].items():
+    for j, v in res.where["per_joint"].items():
         dom = min(singles, key=lambda r: r["gap_heldout_per_joint"][j])
         after = dom["gap_heldout_per_joint"][j]
         print(f"| {j} | {1e3 * v['lag_sim_vs_command_s']:.1f} | {1e3 * v['lag_real_vs_command_s']:.1f} | "
               f"{1e3 * v['lag_real_vs_sim_s']:.1f} | {before[j]:.4f} | {dom['effect']} | {after:.4f} | "
               f"{100 * (1 - after / before[j]):.0f} % |")
     print("\n| rank | effect | params | held-out gap | shrink |\n|---|---|---|---|---|")
-    for i, r in enumerate(res["ranking"][:8], 1):
+    for i, r in enumerate(res.ranking[:8], 1):
         print(f"| {i} | {r['effect']} | {r['nparam']} | {r['gap_heldout']:.4f} | {100 * r['shrink']:.0f} % |")
 
 

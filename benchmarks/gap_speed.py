@@ -50,8 +50,8 @@ def main() -> None:
     print("| log | joints | candidates fitted | window rollouts | wall (s) | CPU, both threads (s) | one plain replay (s) "
           "| wall / replay | verdict |")
     print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| 30 s at 200 Hz | 12 | {len(res['ranking'])} | {res['rollouts']} | {seconds:.1f} | {cpu:.1f} | {base:.3f} | "
-          f"{seconds / base:.0f} | {res['verdict']}: {(res['selected'] or res['closest'])['effect']} |")
+    print(f"| 30 s at 200 Hz | 12 | {len(res.ranking)} | {res.rollouts} | {seconds:.1f} | {cpu:.1f} | {base:.3f} | "
+          f"{seconds / base:.0f} | {res.verdict}: {(res.selected or res.closest)['effect']} |")
 
 
 if __name__ == "__main__":

@@ -2,13 +2,14 @@
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
 import pytest
 
 from crisp_gym.sim2real import effects as fx
-from crisp_gym.sim2real.bench import commands, scenario, synthesize, BenchConfig
+from crisp_gym.sim2real.bench import BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose
 from crisp_gym.sim2real.fit import Combo, Fitter
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -30,31 +31,31 @@ def test_delay_is_found_with_its_value():
     truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.03], "x0": [0.01]}
     sc, train, test = _case(truth)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "explained" and res["selected"]["family"] == "delay"
-    p = res["selected"]["parameters"][0]
+    assert res.verdict == "explained" and res.selected["family"] == "delay"
+    p = res.selected["parameters"][0]
     assert abs(p["value"] - 0.03) < 0.003
-    assert res["shrink"] > 0.8
+    assert res.shrink > 0.8
 
 
 def test_no_effect_gives_none():
     sc, train, test = _case({"family": "none"}, seed=1)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "none"
+    assert res.verdict == "none"
 
 
 def test_friction_value_and_interval():
     sc, train, test = _case({"family": "coulomb_friction", "effect": "coulomb_friction", "joint": None,
                              "x": [0.08], "x0": [0.0]}, seed=2)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["selected"]["family"] == "coulomb_friction"
-    lo, hi = res["selected"]["parameters"][0]["ci95"]
-    assert abs(res["selected"]["parameters"][0]["value"] - 0.08) < 0.008 and lo <= 0.08 <= hi
+    assert res.selected["family"] == "coulomb_friction"
+    lo, hi = res.selected["parameters"][0]["ci95"]
+    assert abs(res.selected["parameters"][0]["value"] - 0.08) < 0.008 and lo <= 0.08 <= hi
 
 
 def test_outside_effect_is_unexplained():
     sc, train, test = _case({"family": "outside", "kind": "command_filter", "tau": 0.05}, seed=3)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "unexplained"
+    assert res.verdict == "unexplained"
 
 
 @pytest.mark.parametrize("kind, x", [(fx.GainScale, 0.6), (fx.MassScale, 1.8), (fx.EncoderBias, 0.05)])
@@ -89,16 +90,16 @@ def test_cli_errors_cleanly(tmp_path, capsys):
 # -- effects added for load-dependent friction, mass/COM change and missing support -------------------
 
 def _selected_value(res: dict, name: str) -> float:
-    return next(p["value"] for p in res["selected"]["parameters"] if p["name"].split("@")[0] == name)
+    return next(p["value"] for p in res.selected["parameters"] if p["name"].split("@")[0] == name)
 
 
 def test_load_friction_is_found_with_its_value():
     truth = {"family": "load_friction", "effect": "load_friction", "joint": None, "x": [0.3], "x0": [0.0]}
     sc, train, test = _case(truth, seed=6)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "explained" and res["selected"]["family"] == "load_friction"
+    assert res.verdict == "explained" and res.selected["family"] == "load_friction"
     assert abs(_selected_value(res, "mu") - 0.3) < 0.03
-    assert res["shrink"] > 0.8
+    assert res.shrink > 0.8
 
 
 def test_load_friction_holds_the_joint_under_load():
@@ -118,7 +119,7 @@ def test_com_shift_is_found_with_its_value():
     truth = {"family": "mass", "effect": "com_shift", "joint": None, "x": [0.02, 0.015], "x0": [0.0, 0.0]}
     sc, train, test = _case(truth, seed=8)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "explained" and res["selected"]["effect"].startswith("com_shift")
+    assert res.verdict == "explained" and res.selected["effect"].startswith("com_shift")
     fit = np.array([_selected_value(res, "along"), _selected_value(res, "across")])
     assert np.linalg.norm(fit - [0.02, 0.015]) < 0.1 * np.linalg.norm([0.02, 0.015])
 
@@ -149,7 +150,7 @@ def test_stribeck_is_found_with_its_torque():
              "x0": [0.0, 0.0]}
     _, train, test = _case(truth, seed=9)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    assert res["verdict"] == "explained" and res["selected"]["family"] == "stribeck_friction"
+    assert res.verdict == "explained" and res.selected["family"] == "stribeck_friction"
     assert abs(_selected_value(res, "static") - ts) < 0.1 * ts
 
 
@@ -176,7 +177,7 @@ def test_support_box_is_selected_over_ground_effects():
     sc, train, test = _humanoid_box_case(seed=1)
     families = ("support_box", "ground_height", "ground_tilt", "contact_softness", "encoder_bias")
     res = diagnose([(train, sc.model)], [(test, sc.model)], DiagnoseConfig(show_progress=False, families=families))
-    assert res["verdict"] == "explained" and res["selected"]["family"] == "support_box"
+    assert res.verdict == "explained" and res.selected["family"] == "support_box"
     assert abs(_selected_value(res, "height") - 0.02) < 0.002
 
 
@@ -186,8 +187,8 @@ def test_bench_scores_weak_effects_apart():
     from crisp_gym.sim2real.bench import DETECTABLE, score_case
 
     truth = {"family": "delay", "effect": "actuator_delay", "x": [0.01], "x0": [0.0]}
-    result = {"verdict": "none", "selected": None, "noise_floor": 0.01, "shrink": 0.0, "gap_before": 0.011,
-              "where": {"worst_joint": "servo"}}
+    result = SimpleNamespace(verdict="none", selected=None, noise_floor=0.01, shrink=0.0, gap_before=0.011,
+                             where={"worst_joint": "servo"})  # the fields of a Diagnosis that scoring reads
     weak = score_case({**truth, "signature": 0.5 * DETECTABLE * 0.01}, result)
     strong = score_case({**truth, "signature": 2.0 * DETECTABLE * 0.01}, result)
     assert weak["weak"] and weak["correct"]
@@ -220,8 +221,8 @@ def test_a_candidate_that_cannot_act_is_skipped_with_its_reason(tmp_path):
     with pytest.raises(fx.CannotApply, match="within 12 cm of the modelled ground"):
         fx.support_points(tr)
     res = diagnose([(train, slotted)], [(test, slotted)], replace(CFG, families=("delay", "support_box")))
-    assert [s["effect"] for s in res["skipped"]] == ["support_box[shared]"]
-    assert res["verdict"] == "explained" and res["selected"]["family"] == "delay"
+    assert [s["effect"] for s in res.skipped] == ["support_box[shared]"]
+    assert res.verdict == "explained" and res.selected["family"] == "delay"
     assert "cannot act on these logs" in (write_report(res, tmp_path / "rep") / "report.md").read_text()
 
 
@@ -231,11 +232,11 @@ def test_fitted_parameters_at_their_bounds_are_flagged(tmp_path):
     truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.02], "x0": [0.01]}
     sc, train, test = _case(truth, seed=5)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
-    (param,) = res["selected"]["parameters"]
+    (param,) = res.selected["parameters"]
     assert param["at_bound"] is False  # 20 ms, inside the delay's range
     bounded = fx.Param("x", 0.0, 0.0, 0.1, 1e-3, "m")
     assert at_bound(bounded, 0.1) and at_bound(bounded, 0.0005) and not at_bound(bounded, 0.05)
-    res["selected"]["parameters"][0]["at_bound"] = True
+    res.selected["parameters"][0]["at_bound"] = True
     assert "**at its bound**" in (write_report(res, tmp_path / "rep") / "report.md").read_text()
 
 
@@ -249,6 +250,6 @@ def test_a_delay_on_one_drive_is_found_on_that_drive():
     truth = {"family": "delay", "effect": "actuator_delay", "joint": "L_Hip_y", "x": [0.04], "x0": [0.01]}
     train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
     res = diagnose([(train, sc.model)], [(test, sc.model)], replace(CFG, families=("delay",)))
-    assert res["verdict"] == "explained" and res["selected"]["effect"] == "actuator_delay[L_Hip_y]"
-    (delay,) = res["selected"]["parameters"]
+    assert res.verdict == "explained" and res.selected["effect"] == "actuator_delay[L_Hip_y]"
+    (delay,) = res.selected["parameters"]
     assert delay["ci95"][0] <= 0.04 <= delay["ci95"][1] and abs(delay["value"] - 0.04) < 0.01

@@ -4,16 +4,16 @@ how far it shrinks once modelled (checked on held-out data).
 Public API::
 
     from crisp_gym.sim2real import RealLog, load_log, save_log, diagnose, DiagnoseConfig, write_report
-    result = diagnose([(log, model)], holdout=None)      # dict: verdict, where, ranking, selected, ...
+    result = diagnose([(log, model)], holdout=None)      # Diagnosis: verdict, where, ranking, selected, ...
     write_report(result, "report_dir")
 
 The command line is :mod:`crisp_gym.sim2real.cli` (``crisp gap diagnose`` / ``crisp gap bench``).
 """
 
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
+from crisp_gym.sim2real.diagnose import DiagnoseConfig, Diagnosis, diagnose
 from crisp_gym.sim2real.log import RealLog, load_log, save_log, validate_against_model
 from crisp_gym.sim2real.recorder import LogRecorder
 from crisp_gym.sim2real.report import write_report
 
-__all__ = ["DiagnoseConfig", "LogRecorder", "RealLog", "diagnose", "load_log", "save_log", "validate_against_model",
+__all__ = ["DiagnoseConfig", "Diagnosis", "LogRecorder", "RealLog", "diagnose", "load_log", "save_log", "validate_against_model",
            "write_report"]

@@ -11,8 +11,16 @@ import numpy as np
 
 from crisp_gym.npz import read_npz
 from crisp_gym.sim2real.log import RealLog
-from crisp_gym.sim2real.models import (GO2_JOINTS, GO2_KD, GO2_KP, SERVO_ACTUATOR, SERVO_JOINT, ServoConfig,
-                                       build_servo_pendulum, load_go2_fixed_base)
+from crisp_gym.sim2real.models import (
+    GO2_JOINTS,
+    GO2_KD,
+    GO2_KP,
+    SERVO_ACTUATOR,
+    SERVO_JOINT,
+    ServoConfig,
+    build_servo_pendulum,
+    load_go2_fixed_base,
+)
 
 _SERVO_HEADER = ("mass", "length", "kp", "vin", "dt")
 _SERVO_ENTRY = ("position", "goal_position", "timestamp", "torque_enable")

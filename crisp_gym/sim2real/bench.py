@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from crisp_gym.atomic import write_text
 from crisp_gym.sim2real import effects as fx
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
+from crisp_gym.sim2real.diagnose import DiagnoseConfig, Diagnosis, diagnose
 from crisp_gym.sim2real.fit import Combo, gap_rms, residuals
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import (
@@ -269,23 +269,23 @@ MAGNITUDE = {"support_box": ("height",), "stribeck_friction": ("static",)}
 in metres apart, and a Stribeck velocity is undefined without a Stribeck torque."""
 
 
-def score_case(truth: dict, result: dict) -> dict:
+def score_case(truth: dict, result: Diagnosis) -> dict:
     """Compare a diagnosis with the truth it never saw.
 
     Parameter error: |x_fit - x_true| / |x_true - x_nominal| over the effect's parameters
     (vector norms; for ``MAGNITUDE`` effects, their size parameters only)."""
-    verdict = result["verdict"]
-    sel = result.get("selected")
+    verdict = result.verdict
+    sel = result.selected
     predicted = {"none": "none", "unexplained": "unexplained"}.get(verdict, sel["family"] if sel else "unexplained")
     expected = {"none": "none", "outside": "unexplained"}.get(truth["family"], truth["family"])
-    weak = expected not in ("none", "unexplained") and truth["signature"] < DETECTABLE * result["noise_floor"]
+    weak = expected not in ("none", "unexplained") and truth["signature"] < DETECTABLE * result.noise_floor
     row = {"truth": expected, "predicted": predicted, "weak": bool(weak),
            "correct": predicted in (expected, "none") if weak else predicted == expected,
-           "signature": truth["signature"], "shrink": result["shrink"], "gap_before": result["gap_before"],
-           "floor": result["noise_floor"], "param_error": None, "ci_contains": None, "location_error_m": None,
+           "signature": truth["signature"], "shrink": result.shrink, "gap_before": result.gap_before,
+           "floor": result.noise_floor, "param_error": None, "ci_contains": None, "location_error_m": None,
            "localised": None}
     if truth.get("joint") and truth["family"] not in ("none",):
-        row["localised"] = result["where"]["worst_joint"] == truth["joint"]
+        row["localised"] = result.where["worst_joint"] == truth["joint"]
     if predicted == expected and sel and "x" in truth:
         params = [p for p in sel["parameters"] if p["effect"].startswith(truth["effect"])]
         if not params and len(sel["parameters"]) == len(truth["x"]):
@@ -326,7 +326,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path) -> dict:
                    json.dumps({**truth, "model": sc.name, "noise": noise, "signature": size}))
         result = diagnose([(train, sc.model)], [(test, sc.model)], dcfg)  # the truth stays on disk
         row = {"case": i, "model": sc.name, "noise": noise, "hidden": truth.get("effect", truth.get("kind", "none")),
-               "selected": (result.get("selected") or {}).get("effect"), "seconds": result["seconds"],
+               "selected": (result.selected or {}).get("effect"), "seconds": result.seconds,
                **score_case(json.loads((out / "truth" / f"case{i:03d}.json").read_text()), result)}
         rows.append(row)
         with open(out / "results.jsonl", "a" if i else "w") as f:

@@ -84,9 +84,9 @@ def run_diagnose(args: Diagnose) -> int:
     holdout = [load_any(p, args.model) for p in args.holdout] or None
     result = diagnose(train, holdout, args.config)
     write_report(result, args.out)
-    sel = result["selected"] or result["closest"]
-    print(f"verdict: {result['verdict']}; effect: {sel['effect'] if sel else '-'}; held-out gap "
-          f"{result['gap_before']:.4g} -> {result['gap_after_heldout']:.4g} rad (floor {result['noise_floor']:.3g}); "
+    sel = result.selected or result.closest
+    print(f"verdict: {result.verdict}; effect: {sel['effect'] if sel else '-'}; held-out gap "
+          f"{result.gap_before:.4g} -> {result.gap_after_heldout:.4g} rad (floor {result.noise_floor:.3g}); "
           f"report in {args.out}")
     return 0
 

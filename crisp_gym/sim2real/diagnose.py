@@ -11,7 +11,8 @@ gets "none"; a gap that no effect brings near the floor is "unexplained".
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -156,12 +157,61 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
     return candidate.x - half, candidate.x + half
 
 
-def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[RealLog, mujoco.MjModel]] | None = None,
-             config: DiagnoseConfig | None = None) -> dict:
-    """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on).
+@dataclass(frozen=True)
+class Replay:
+    """The held-out windows replayed before and after the selected (or closest) effect, for plots.
 
-    Returns the machine-readable report (see ``docs/sim2real.md`` for every key).
+    Attributes:
+        windows: the replay windows.
+        dt: the logs' time step (s).
+        mask: (W, S) bool, the steps each window has.
+        target: (W, S, J) the logged joint positions.
+        pred_before, pred_after: (W, S, J) the simulated ones, nominal and with the effect.
+        sources: where each held-out log came from.
     """
+
+    windows: Any
+    dt: float
+    mask: np.ndarray
+    target: np.ndarray
+    pred_before: np.ndarray
+    pred_after: np.ndarray
+    sources: list[str]
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What :func:`diagnose` finds. :meth:`to_json` is ``report.json``; ``docs/sim2real.md``
+    describes every field."""
+
+    verdict: str
+    joints: list[str]
+    gap_before: float
+    noise_floor: float
+    noise_floor_best: float
+    noise_sigma: dict[str, float]
+    where: dict[str, Any]
+    ranking: list[dict[str, Any]]
+    skipped: list[dict[str, str]]
+    heldout: str
+    config: dict[str, Any]
+    selected: dict[str, Any] | None
+    closest: dict[str, Any] | None
+    gap_after_heldout: float
+    shrink: float
+    shrink_above_floor: float
+    rollouts: int
+    seconds: float
+    replay: Replay = field(repr=False)
+
+    def to_json(self) -> dict[str, Any]:
+        """Every field but the replay arrays, in order."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "replay"}
+
+
+def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[RealLog, mujoco.MjModel]] | None = None,
+             config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on)."""
     cfg = config or DiagnoseConfig()
     t_start = time.perf_counter()
     if not train:
@@ -212,19 +262,6 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     floor_best = float(np.sqrt(np.mean(noise_floor(rep_test, cfg.seed, ranked[0], cfg.floor_draws, 1.0) ** 2)))
     ranked = _parsimonious_first(ranked, max(floor, floor_best), cfg.tolerance)
     verdict, selected = _verdict(ranked, gap_before, floor, floor_best, cfg)
-    result: dict = {
-        "verdict": verdict,
-        "joints": list(names),
-        "gap_before": gap_before,
-        "noise_floor": floor,
-        "noise_floor_best": floor_best,
-        "noise_sigma": {n: float(s) for n, s in zip(names, tr_train[0].sigma)},
-        "where": where_before,
-        "ranking": [_row(c, gap_before, floor, names) for c in ranked],
-        "skipped": skipped,
-        "heldout": "time split" if split else "held-out logs",
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
-    }
     best = ranked[0]
     runner = next((c for c in ranked[1:] if c.combo.family != best.combo.family), None)
     chosen = selected or best
@@ -247,21 +284,33 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         "runner_up": None if runner is None else runner.combo.label,
         "per_joint_gap_after": {n: float(g) for n, g in zip(names, per_joint_after)},
     }
-    result["selected"] = summary if selected is not None else None
-    result["closest"] = summary if selected is None else None
-    result["gap_after_heldout"] = chosen.heldout_gap if selected is not None else gap_before
-    result["shrink"] = 1.0 - result["gap_after_heldout"] / gap_before if gap_before > 0 else 0.0
+    gap_after = chosen.heldout_gap if selected is not None else gap_before
     excess0 = gap_before**2 - floor**2
-    result["shrink_above_floor"] = (float(1 - max(result["gap_after_heldout"]**2 - floor**2, 0) / excess0)
-                                    if excess0 > 0 else 0.0)
     target = rep_test.targets(nominal_inputs(tr_test))
-    result["_replay"] = {"windows": rep_test.windows, "dt": tr_test[0].log.dt, "mask": rep_test.mask,
-                         "target": target, "pred_before": target + r0_test,
-                         "pred_after": target + r_after,
-                         "sources": [t.log.meta.get("source", f"log{i}") for i, t in enumerate(tr_test)]}
-    result["rollouts"] = fitter.rollouts
-    result["seconds"] = time.perf_counter() - t_start
-    return result
+    replay = Replay(windows=rep_test.windows, dt=tr_test[0].log.dt, mask=rep_test.mask, target=target,
+                    pred_before=target + r0_test, pred_after=target + r_after,
+                    sources=[t.log.meta.get("source", f"log{i}") for i, t in enumerate(tr_test)])
+    return Diagnosis(
+        verdict=verdict,
+        joints=list(names),
+        gap_before=gap_before,
+        noise_floor=floor,
+        noise_floor_best=floor_best,
+        noise_sigma={n: float(s) for n, s in zip(names, tr_train[0].sigma)},
+        where=where_before,
+        ranking=[_row(c, gap_before, floor, names) for c in ranked],
+        skipped=skipped,
+        heldout="time split" if split else "held-out logs",
+        config={k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
+        selected=summary if selected is not None else None,
+        closest=summary if selected is None else None,
+        gap_after_heldout=gap_after,
+        shrink=1.0 - gap_after / gap_before if gap_before > 0 else 0.0,
+        shrink_above_floor=(float(1 - max(gap_after**2 - floor**2, 0) / excess0) if excess0 > 0 else 0.0),
+        rollouts=fitter.rollouts,
+        seconds=time.perf_counter() - t_start,
+        replay=replay,
+    )
 
 
 def _owners(combo: Combo) -> list[Effect]:

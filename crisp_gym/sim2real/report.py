@@ -13,22 +13,18 @@ import numpy as np
 
 from crisp_gym.atomic import atomic_directory
 from crisp_gym.html_report import markdown_section, write_html_report
+from crisp_gym.sim2real.diagnose import Diagnosis
 
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
 
-def to_json(result: dict) -> dict:
-    """The serialisable part of a diagnosis (drops the replay arrays kept for plots)."""
-    return {k: v for k, v in result.items() if not k.startswith("_")}
-
-
-def write_report(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
+def write_report(result: Diagnosis, out_dir: str | Path, plots: bool = True) -> Path:
     """Write ``report.json``, ``report.md``, PNG plots and ``report.html`` (the Markdown with its
     plots, to open in a browser) into ``out_dir``."""
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=True) as tmp:
-        (tmp / "report.json").write_text(json.dumps(to_json(result), indent=1, default=_jsonable))
-        figures = _plots(result, tmp) if plots and "_replay" in result else []
+        (tmp / "report.json").write_text(json.dumps(result.to_json(), indent=1, default=_jsonable))
+        figures = _plots(result, tmp) if plots else []
         text = _markdown(result, figures)
         (tmp / "report.md").write_text(text)
         title, _, body = text.partition("\n")
@@ -49,24 +45,24 @@ def _fmt(x: float | None, digits: int = 4) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}g}"
 
 
-def _markdown(result: dict, figures: list[str]) -> str:
-    sel = result.get("selected") or result.get("closest")
+def _markdown(result: Diagnosis, figures: list[str]) -> str:
+    sel = result.selected or result.closest
     lines = ["# Sim-to-real gap diagnosis", ""]
-    verdict = result["verdict"]
+    verdict = result.verdict
     if verdict == "none":
-        lines.append(f"**Verdict: no significant gap.** The held-out gap ({_fmt(result['gap_before'])} rad RMS) is "
-                     f"at the noise floor ({_fmt(result['noise_floor'])} rad).")
+        lines.append(f"**Verdict: no significant gap.** The held-out gap ({_fmt(result.gap_before)} rad RMS) is "
+                     f"at the noise floor ({_fmt(result.noise_floor)} rad).")
     elif verdict == "explained":
-        lines.append(f"**Verdict: {sel['effect']}** explains the gap: held-out RMS {_fmt(result['gap_before'])} → "
-                     f"{_fmt(result['gap_after_heldout'])} rad (shrink {100 * result['shrink']:.0f} %, "
-                     f"noise floor {_fmt(result['noise_floor'])} rad, {_fmt(result['noise_floor_best'])} rad "
+        lines.append(f"**Verdict: {sel['effect']}** explains the gap: held-out RMS {_fmt(result.gap_before)} → "
+                     f"{_fmt(result.gap_after_heldout)} rad (shrink {100 * result.shrink:.0f} %, "
+                     f"noise floor {_fmt(result.noise_floor)} rad, {_fmt(result.noise_floor_best)} rad "
                      f"with the selected effect); margin over the runner-up "
                      f"({sel['runner_up']}): {_fmt(100 * (sel['margin_over_runner_up'] or 0), 3)} % in score.")
     else:
         lines.append(f"**Verdict: unexplained.** No effect in the library brings the held-out gap "
-                     f"({_fmt(result['gap_before'])} rad) near the noise floor ({_fmt(result['noise_floor'])} rad); "
+                     f"({_fmt(result.gap_before)} rad) near the noise floor ({_fmt(result.noise_floor)} rad); "
                      f"the closest, {sel['effect']}, leaves {_fmt(sel['gap_heldout'])} rad.")
-    lines += ["", f"Held out: {result['heldout']}.", ""]
+    lines += ["", f"Held out: {result.heldout}.", ""]
     if sel:
         lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
         for p in sel["parameters"]:
@@ -77,7 +73,7 @@ def _markdown(result: dict, figures: list[str]) -> str:
         if any(p.get("at_bound") for p in sel["parameters"]):
             lines += ["A parameter at its bound means the fit wanted to go further: the effect is likely not the "
                       "cause, or only part of it.", ""]
-    w = result["where"]
+    w = result.where
     lines += ["## Where the gap lies", "", f"Worst joint: **{w['worst_joint']}**.", "",
               "| joint | RMS pos (rad) | floor | RMS vel (rad/s) | lag real vs cmd (s) | lag sim vs cmd (s) | "
               "extra lag real vs sim (s) |", "|---|---|---|---|---|---|---|"]
@@ -90,40 +86,40 @@ def _markdown(result: dict, figures: list[str]) -> str:
         lines.append(f"| {k} | {100 * v['share_of_samples']:.0f} % | {_fmt(v['rms'])} | {_fmt(v['ratio_to_overall'], 3)} |")
     lines += ["", "## Ranking (held-out)", "",
               "| # | effect | params | train gap | held-out gap | shrink | gap / floor |", "|---|---|---|---|---|---|---|"]
-    for i, r in enumerate(result["ranking"], 1):
+    for i, r in enumerate(result.ranking, 1):
         lines.append(f"| {i} | {r['effect']} | {r['nparam']} | {_fmt(r['gap_train'])} | {_fmt(r['gap_heldout'])} | "
                      f"{100 * r['shrink']:.0f} % | {_fmt(r['gap_over_floor'], 3)} |")
     lines.append("")
-    if result.get("skipped"):
+    if result.skipped:
         lines += ["## Candidates that cannot act on these logs (skipped)", ""]
-        lines += [f"- {s['effect']}: {s['reason']}" for s in result["skipped"]]
+        lines += [f"- {s['effect']}: {s['reason']}" for s in result.skipped]
         lines.append("")
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
 
 
-def _plots(result: dict, out: Path) -> list[str]:
+def _plots(result: Diagnosis, out: Path) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rp = result["_replay"]
-    names = result["joints"]
-    sel = result.get("selected") or result.get("closest")
+    rp = result.replay
+    names = result.joints
+    sel = result.selected or result.closest
     files = []
 
     # Overlay: the held-out windows of the worst joint with the largest gap before.
-    j = names.index(result["where"]["worst_joint"])
-    err = np.sqrt(np.sum((rp["pred_before"][..., j] - rp["target"][..., j]) ** 2 * rp["mask"], axis=1))
+    j = names.index(result.where["worst_joint"])
+    err = np.sqrt(np.sum((rp.pred_before[..., j] - rp.target[..., j]) ** 2 * rp.mask, axis=1))
     fig, axes = plt.subplots(1, min(3, len(err)), figsize=(12, 3.2), squeeze=False)
     for ax, k in zip(axes[0], np.argsort(err)[::-1]):
-        n = int(rp["mask"][k].sum())
-        t = rp["dt"] * np.arange(1, n + 1)
-        ax.plot(t, rp["target"][k, :n, j], "k", label="real")
-        ax.plot(t, rp["pred_before"][k, :n, j], "C3--", label="sim before")
-        ax.plot(t, rp["pred_after"][k, :n, j], "C2", label=f"sim + {sel['family']}" if sel else "sim after")
+        n = int(rp.mask[k].sum())
+        t = rp.dt * np.arange(1, n + 1)
+        ax.plot(t, rp.target[k, :n, j], "k", label="real")
+        ax.plot(t, rp.pred_before[k, :n, j], "C3--", label="sim before")
+        ax.plot(t, rp.pred_after[k, :n, j], "C2", label=f"sim + {sel['family']}" if sel else "sim after")
         ax.set_xlabel("time in window (s)")
         ax.set_title(f"{names[j]}, window {k}", fontsize=9)
     axes[0][0].set_ylabel("position (rad)")
@@ -133,7 +129,7 @@ def _plots(result: dict, out: Path) -> list[str]:
     plt.close(fig)
     files.append("overlay.png")
 
-    per = result["where"]["per_joint"]
+    per = result.where["per_joint"]
     after = (sel or {}).get("per_joint_gap_after", {})
     x = np.arange(len(names))
     fig, ax = plt.subplots(figsize=(max(5, 0.6 * len(names) + 2), 3.2))
@@ -148,7 +144,7 @@ def _plots(result: dict, out: Path) -> list[str]:
     plt.close(fig)
     files.append("per_joint.png")
 
-    reg = result["where"]["regimes"]
+    reg = result.where["regimes"]
     fig, ax = plt.subplots(figsize=(6, 3))
     ax.bar(list(reg), [v["ratio_to_overall"] for v in reg.values()])
     ax.axhline(1.0, color="k", lw=0.8)
@@ -159,11 +155,11 @@ def _plots(result: dict, out: Path) -> list[str]:
     plt.close(fig)
     files.append("regimes.png")
 
-    rank = result["ranking"][:12]
+    rank = result.ranking[:12]
     fig, ax = plt.subplots(figsize=(7, 0.3 * len(rank) + 1.2))
     ax.barh([r["effect"] for r in rank][::-1], [r["gap_heldout"] for r in rank][::-1])
-    ax.axvline(result["gap_before"], color="C3", label="before")
-    ax.axvline(result["noise_floor"], color="k", ls="--", label="noise floor")
+    ax.axvline(result.gap_before, color="C3", label="before")
+    ax.axvline(result.noise_floor, color="k", ls="--", label="noise floor")
     ax.set_xlabel("held-out RMS gap (rad)")
     ax.tick_params(axis="y", labelsize=7)
     ax.legend(fontsize=8)
