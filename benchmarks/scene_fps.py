@@ -27,10 +27,11 @@ import tyro
 import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
 from crisp_gym.clip import Clip
 from crisp_gym.envs.track_vector import CrispTrackVectorEnv
-from crisp_gym.registry import load_clip
+from crisp_gym.geometry import intrinsic_from_fov, look_at
 from crisp_gym.reconstruct.baselines import ColliderConfig, TsdfConfig, write_baseline_clips
 from crisp_gym.reconstruct.frames import Frames
-from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.registry import load_clip
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.geometry import fit_plane, plane_axes, ransac_plane
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics, foot_sole_heights
 from crisp_gym.reconstruct.body_mesh import BodyMesher, cast_mesh
@@ -331,51 +332,10 @@ def _cloud(per_frame: list[np.ndarray], cfg: AlignConfig) -> tuple[np.ndarray, n
     return np.asarray(cloud.points), np.asarray(cloud.normals)
 
 
-def _floor_axes(normal: np.ndarray) -> np.ndarray:
-    """(2, 3) two orthonormal directions along the plane of unit ``normal``."""
-    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    first = np.cross(normal, helper)
-    first /= np.linalg.norm(first)
-    return np.stack([first, np.cross(normal, first)])
 
 
-def fit_plane(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares plane (unit normal along ``up``, offset) through ``points``."""
-    centre = points.mean(axis=0)
-    normal = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
-    normal = normal if normal @ up >= 0 else -normal
-    return normal, float(-normal @ centre)
 
 
-def ransac_plane(points: np.ndarray, up: np.ndarray, min_cos: float, threshold: float, iterations: int,
-                 rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """The plane (unit normal along ``up``, offset, inlier mask within ``threshold``) with the most
-    inliers among ``iterations`` hypotheses whose normal has at least ``min_cos`` with ``up``,
-    refined by least squares; ``None`` when no hypothesis qualifies.
-
-    Written out rather than Open3D's ``segment_plane`` because that one draws from a global seed.
-    """
-    if len(points) < 3:
-        return None
-    sample = points[rng.integers(len(points), size=(iterations, 3))]
-    normals = np.cross(sample[:, 1] - sample[:, 0], sample[:, 2] - sample[:, 0])
-    norms = np.linalg.norm(normals, axis=1)
-    ok = norms > 1e-9
-    normals[ok] /= norms[ok, None]
-    normals *= np.where(normals @ up < 0, -1.0, 1.0)[:, None]
-    ok &= normals @ up >= min_cos
-    if not ok.any():
-        return None
-    normals, offsets = normals[ok], -np.einsum("ij,ij->i", normals[ok], sample[ok, 0])
-    counts = (np.abs(points @ normals.T + offsets) < threshold).sum(axis=0)
-    best = int(np.argmax(counts))
-    normal, offset = normals[best], offsets[best]
-    for _ in range(2):  # refit on the inliers, then take the inliers of the refit
-        inliers = np.abs(points @ normal + offset) < threshold
-        if inliers.sum() < 3:
-            return None
-        normal, offset = fit_plane(points[inliers], up)
-    return normal, offset, np.abs(points @ normal + offset) < threshold
 
 
 def _refine_per_frame(per_frame: list[np.ndarray], normal: np.ndarray, offset: float, up: np.ndarray,
@@ -437,7 +397,7 @@ def fit_floor(frames: Frames, up_prior: np.ndarray, tolerance_deg: float, anchor
     searched = min(cfg.floor_frames, frames.num_frames)
     # how far from the anchors the floor was seen, along the floor: a floor seen only metres
     # away sets its height less reliably than the feet do
-    along = _floor_axes(normal).T
+    along = plane_axes(normal).T
     tree = cKDTree(np.asarray(anchors, dtype=float).reshape(-1, 3) @ along)
     distance = float(np.median(tree.query(np.concatenate(kept) @ along)[0])) if kept else float("inf")
     diagnostics = {

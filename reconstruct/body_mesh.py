@@ -17,6 +17,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
+from crisp_gym.geometry import pixel_rays
 from crisp_gym.humanoid import HumanoidConfig, build_humanoid
 from crisp_gym.motion import humanoid_body_ids, humanoid_qpos_adr
 
@@ -32,12 +33,6 @@ def _geom_template(geom_type: int, size: np.ndarray) -> trimesh.Trimesh:
     raise ValueError(f"the humanoid has a geom of type {geom_type}; only capsules, boxes and spheres are meshed")
 
 
-def pixel_rays(intrinsic: np.ndarray, width: int, height: int, u0: int = 0, v0: int = 0) -> np.ndarray:
-    """(H, W, 3) camera-frame ray directions with unit z of the pixels ``u0 <= u < width``,
-    ``v0 <= v < height`` (pixel centres at integer u, v, as OpenCV)."""
-    u, v = np.meshgrid(np.arange(u0, width, dtype=np.float64), np.arange(v0, height, dtype=np.float64))
-    return np.stack([(u - intrinsic[0, 2]) / intrinsic[0, 0], (v - intrinsic[1, 2]) / intrinsic[1, 1],
-                     np.ones_like(u)], axis=-1)
 
 
 def cast_mesh(vertices: np.ndarray, faces: np.ndarray, intrinsic: np.ndarray, cam_c2w: np.ndarray,

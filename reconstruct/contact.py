@@ -48,14 +48,12 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-import trimesh
-from scipy.spatial import QhullError
 from scipy.spatial.transform import Rotation
 from sklearn.cluster import DBSCAN
-from sklearn.linear_model import LinearRegression, RANSACRegressor
 
 from crisp_gym.atomic import atomic_path
 from crisp_gym.balance import distance_outside_hull
+from crisp_gym.geometry import min_area_rectangle, plane_frame, ransac_height_plane, snap_to_gravity
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import Motion, compute_kinematics
@@ -738,64 +736,24 @@ def _supported(points: np.ndarray, boxes: list[Box], cfg: CompletionConfig) -> n
     return near
 
 
-def _frame_from_normal(normal: np.ndarray) -> np.ndarray:
-    """(3, 3) columns u, v, n: a right-handed frame whose third axis is ``normal``."""
-    ref = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(ref, normal)
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(normal, u), normal], axis=1)
 
 
-def _fit_plane(points: np.ndarray, hint: np.ndarray, cfg: CompletionConfig) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC plane through ``points`` with its normal on ``hint``'s side: (unit normal, inlier mask).
-
-    The offset along the normal is regressed on the two in-plane coordinates of the hint's
-    frame, which needs at most a slope and stays well-posed for a thin strip of points.
-    """
-    frame = _frame_from_normal(hint)
-    local = points @ frame
-    ransac = RANSACRegressor(LinearRegression(), min_samples=3, residual_threshold=cfg.ransac_threshold,
-                             random_state=cfg.seed)
-    ransac.fit(local[:, :2], local[:, 2])
-    a, b = ransac.estimator_.coef_
-    normal = frame @ np.array([-a, -b, 1.0])
-    normal /= np.linalg.norm(normal)
-    return normal, ransac.inlier_mask_
 
 
-def _snap(normal: np.ndarray, hint: np.ndarray, cfg: CompletionConfig) -> np.ndarray:
-    """Level (or plumb) a nearly level (or vertical) normal."""
-    if abs(normal[2]) >= math.cos(math.radians(cfg.snap_deg)):
-        return np.array([0.0, 0.0, math.copysign(1.0, normal[2])])
-    if abs(normal[2]) <= math.sin(math.radians(cfg.snap_deg)):
-        flat = normal * [1.0, 1.0, 0.0]
-        return flat / np.linalg.norm(flat)
-    return normal if normal @ hint > 0 else -normal
 
 
-def _rectangle(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum-area rectangle of 2D points: (centre (2,), axes (2, 2) as columns, half extents (2,))."""
-    try:
-        transform, extents = trimesh.bounds.oriented_bounds_2D(xy)
-        inverse = np.linalg.inv(transform)
-        return inverse[:2, 2], inverse[:2, :2], np.asarray(extents, dtype=float) / 2
-    except QhullError:  # collinear points: their principal axis
-        mean = xy.mean(axis=0)
-        _, _, vt = np.linalg.svd(xy - mean)
-        local = (xy - mean) @ vt.T
-        lo, hi = local.min(axis=0), local.max(axis=0)
-        return mean + ((lo + hi) / 2) @ vt, vt.T, (hi - lo) / 2
 
 
 def _surface_box(points: np.ndarray, hint: np.ndarray, cfg: CompletionConfig, name: str) -> Box:
     """A box whose top face is the RANSAC plane of ``points`` and covers them with the margin."""
-    normal, inliers = _fit_plane(points, hint, cfg)
-    normal = _snap(normal, hint, cfg)
-    frame = _frame_from_normal(normal)
+    normal, inliers = ransac_height_plane(points, hint, cfg.ransac_threshold, cfg.seed)
+    normal = snap_to_gravity(normal, cfg.snap_deg)  # on hint's side already
+    frame = plane_frame(normal)
     local = points[inliers] @ frame
-    centre, axes, half = _rectangle(local[:, :2])
+    rectangle = min_area_rectangle(local[:, :2])
+    centre, half = rectangle.centre, rectangle.half_size
     top = float(np.quantile(local[:, 2], cfg.top_quantile))
-    u = frame[:, :2] @ axes[:, 0]
+    u = frame[:, :2] @ rectangle.axes[0]
     v = np.cross(normal, u)
     rotation = np.stack([u, v, normal], axis=1)
     center = frame[:, :2] @ centre + (top - cfg.thickness / 2) * normal

@@ -22,6 +22,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from crisp_gym.geometry import pixel_rays
+
 
 @dataclass(frozen=True)
 class Frames:
@@ -96,11 +98,7 @@ class Frames:
     def rays(self) -> np.ndarray:
         """(H, W, 3) camera-frame directions with unit z: a pixel's point is ``depth * ray``."""
         h, w = self.image_size
-        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        k = self.intrinsic
-        x = (u - k[0, 2]) / k[0, 0]
-        y = (v - k[1, 2]) / k[1, 1]
-        return np.stack([x, y, np.ones_like(x)], axis=-1)
+        return pixel_rays(self.intrinsic, w, h)
 
     def camera_points(self, t: int) -> np.ndarray:
         """(H, W, 3) frame ``t``'s pointmap in its camera frame (zeros where depth is missing)."""

@@ -46,11 +46,11 @@ from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
 from crisp_gym.file_errors import reading
+from crisp_gym.geometry import pixel_rays
 from crisp_gym.motion import Motion
 from crisp_gym.npz import read_npz
-from crisp_gym.smpl import load_smpl_params, write_smpl_npz
-from crisp_gym.reconstruct.body_mesh import pixel_rays
 from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.smpl import load_smpl_params, write_smpl_npz
 
 log = logging.getLogger(__name__)
 

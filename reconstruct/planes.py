@@ -47,8 +47,9 @@ from sklearn.cluster import KMeans
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from crisp_gym.scene import Box
+from crisp_gym.geometry import min_area_rectangle, plane_axes, ransac_plane, snap_to_gravity
 from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.scene import Box
 
 _Z = np.array([0.0, 0.0, 1.0])
 
@@ -463,36 +464,17 @@ def _associate(points: np.ndarray, ids: np.ndarray, seen: _Seen, intrinsic: np.n
 
 def _snap(normal: np.ndarray, cfg: PlaneFitConfig) -> np.ndarray:
     """Exactly vertical / horizontal when within ``snap_deg`` of it (gravity-aligned input)."""
-    normal = normal / np.linalg.norm(normal)
-    if abs(normal[2]) >= np.cos(np.radians(cfg.snap_deg)):
-        return np.array([0.0, 0.0, np.sign(normal[2])])
-    if abs(normal[2]) <= np.sin(np.radians(cfg.snap_deg)):
-        flat = np.array([normal[0], normal[1], 0.0])
-        return flat / np.linalg.norm(flat)
-    return normal
+    return snap_to_gravity(normal / np.linalg.norm(normal), cfg.snap_deg)
 
 
 def _ransac_normal(points: np.ndarray, prior: np.ndarray, cfg: PlaneFitConfig,
-                  rng: np.random.Generator) -> np.ndarray:
+                   rng: np.random.Generator) -> np.ndarray:
     """Normal (towards ``prior``) of the RANSAC plane with the most inliers among hypotheses within
     the normal tolerance of ``prior``, refined by least squares on its inliers and snapped."""
     sample = points[rng.integers(0, len(points), cfg.ransac_sample)] if len(points) > cfg.ransac_sample else points
-    idx = rng.integers(0, len(sample), size=(cfg.ransac_iterations, 3))
-    p0 = sample[idx[:, 0]]
-    n = np.cross(sample[idx[:, 1]] - p0, sample[idx[:, 2]] - p0)
-    length = np.linalg.norm(n, axis=1)
-    good = length > 1e-9
-    n, p0 = n[good] / length[good, None], p0[good]
-    cosine = n @ prior
-    aligned = np.abs(cosine) >= cfg.min_normal_cosine
-    n, p0 = n[aligned] * np.sign(cosine[aligned])[:, None], p0[aligned]
-    if len(n) == 0:
-        return _snap(prior, cfg)  # too few points to disagree with the segments' mean normal
-    offsets = np.einsum("ij,ij->i", n, p0)
-    best = int(np.argmax((np.abs(sample @ n.T - offsets) < cfg.ransac_distance).sum(axis=0)))
-    chosen = sample[np.abs(sample @ n[best] - offsets[best]) < cfg.ransac_distance]
-    refined = np.linalg.svd(chosen - chosen.mean(axis=0), full_matrices=False)[2][2]
-    return _snap(refined * np.sign(refined @ prior), cfg)
+    found = ransac_plane(sample, prior, cfg.min_normal_cosine, cfg.ransac_distance, cfg.ransac_iterations, rng,
+                         refinements=1)
+    return _snap(prior if found is None else found[0], cfg)  # none: too few points to disagree with the prior
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
@@ -502,13 +484,6 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
 
 
-def _basis(normal: np.ndarray) -> np.ndarray:
-    """(2, 3) in-plane axes u, v with u × v = normal; u horizontal unless the plane is."""
-    u = np.cross(_Z, normal)
-    if np.linalg.norm(u) < 1e-6:
-        u = np.array([1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(normal, u)])
 
 
 @dataclass
@@ -538,7 +513,7 @@ def _thin(points: np.ndarray, cell: float) -> np.ndarray:
 def _touching(a: np.ndarray, b: np.ndarray, normal: np.ndarray, cell: float) -> bool:
     """Whether the footprints of point sets ``a`` and ``b`` on the plane of ``normal`` come within
     one ``cell`` of each other."""
-    basis = _basis(normal)
+    basis = plane_axes(normal)
     ca, cb = _cells(a @ basis.T, cell), _cells(b @ basis.T, cell)
     low = np.minimum(ca.min(axis=0), cb.min(axis=0)) - 1
     ca, cb = ca - low, cb - low
@@ -705,7 +680,7 @@ def _guillotine(occ: np.ndarray, cfg: PlaneFitConfig) -> list[tuple[slice, slice
 def _plane_boxes(plane: _Plane, yaw: float | None, cfg: PlaneFitConfig) -> tuple[list[Box], float]:
     """Boxes behind the plane's footprint, and the footprint's fill ratio of its rectangle (whose
     yaw snaps to the scene's dominant ``yaw`` when the plane is horizontal and close to it)."""
-    basis = _basis(plane.normal)
+    basis = plane_axes(plane.normal)
     uv = plane.points @ basis.T
     occ, cells = _occupancy(uv, cfg)
     if not occ.any():
@@ -713,7 +688,7 @@ def _plane_boxes(plane: _Plane, yaw: float | None, cfg: PlaneFitConfig) -> tuple
     if abs(plane.normal[2]) < 1e-9:
         axes = np.eye(2)  # vertical surface: edges horizontal and vertical
     else:
-        corners = cv2.boxPoints(cv2.minAreaRect(np.argwhere(occ).astype(np.float32)))
+        corners = min_area_rectangle(np.argwhere(occ)).corners
         first = (corners[1] - corners[0]).astype(float)
         first = first / np.linalg.norm(first) if np.linalg.norm(first) > 0 else np.array([1.0, 0.0])
         if yaw is not None and abs(plane.normal[2]) > 1 - 1e-9:

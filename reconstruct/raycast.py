@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
+from crisp_gym.geometry import pixel_rays
 from crisp_gym.scene import Box
 
 
@@ -26,26 +27,8 @@ def box_mesh(box: Box) -> trimesh.Trimesh:
     return mesh
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """(4, 4) camera → world pose of an OpenCV camera at ``eye`` looking at ``target``."""
-    eye = np.asarray(eye, dtype=np.float64)
-    forward = np.asarray(target, dtype=np.float64) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    if np.linalg.norm(right) < 1e-9:
-        raise ValueError("look_at: the view direction is parallel to `up`")
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([right, down, forward], axis=1)
-    pose[:3, 3] = eye
-    return pose
 
 
-def intrinsic_from_fov(width: int, height: int, fov_x_deg: float) -> np.ndarray:
-    """(3, 3) pinhole K with square pixels and the principal point at the image centre."""
-    f = 0.5 * width / np.tan(0.5 * np.radians(fov_x_deg))
-    return np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -83,10 +66,7 @@ class DepthRenderer:
             scene.add_triangles(self._to_o3d(mesh))
         # Our own rays rather than ``create_rays_pinhole``, which puts pixel centres at u + 0.5:
         # OpenCV (and ``Frames.rays``) put them at integer u, v.
-        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        cam_dirs = np.stack([(u - intrinsic[0, 2]) / intrinsic[0, 0],
-                             (v - intrinsic[1, 2]) / intrinsic[1, 1], np.ones_like(u)], axis=-1)
-        dirs = cam_dirs @ cam_c2w[:3, :3].T  # camera z-component 1, so t_hit is the z-depth
+        dirs = pixel_rays(intrinsic, width, height) @ cam_c2w[:3, :3].T  # camera z-component 1, so t_hit is the z-depth
         origins = np.broadcast_to(cam_c2w[:3, 3], dirs.shape)
         rays = o3d.core.Tensor(np.concatenate([origins, dirs], axis=-1).astype(np.float32))
         hit = scene.cast_rays(rays)

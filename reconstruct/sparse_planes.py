@@ -18,11 +18,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 from sklearn.cluster import DBSCAN
 
+from crisp_gym.geometry import min_area_rectangle
 from crisp_gym.scene import Box
 
 
@@ -61,11 +61,11 @@ class SparsePlaneConfig:
 
 def _level_box(xy: np.ndarray, top: float, cfg: SparsePlaneConfig, name: str) -> Box:
     """A box whose top is level at ``top`` over the minimum-area rectangle of ``xy`` (grown by the margin)."""
-    (cx, cy), (w, h), angle = cv2.minAreaRect(np.asarray(xy, dtype=np.float32))
-    yaw = np.deg2rad(angle)
-    rotation = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
-    half = np.array([w / 2 + cfg.margin, h / 2 + cfg.margin, cfg.thickness / 2])
-    return Box(center=np.array([cx, cy, top - cfg.thickness / 2]), rotation=rotation, half_size=half,
+    rectangle = min_area_rectangle(xy)
+    rotation = np.eye(3)
+    rotation[:2, :2] = rectangle.axes.T
+    half = np.array([*(rectangle.half_size + cfg.margin), cfg.thickness / 2])
+    return Box(center=np.array([*rectangle.centre, top - cfg.thickness / 2]), rotation=rotation, half_size=half,
                source="planar", name=name)
 
 
@@ -102,11 +102,9 @@ def seat_surface(points: np.ndarray, patch: np.ndarray, max_drop: float,
     cfg = config or SparsePlaneConfig()
     patch = np.asarray(patch, dtype=float).reshape(-1, 3)
     low = float(np.quantile(patch[:, 2], 0.1))
-    (cx, cy), (w, h), angle = cv2.minAreaRect(patch[:, :2].astype(np.float32))
-    yaw = np.deg2rad(angle)
-    axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
-    local = (np.asarray(points)[:, :2] - [cx, cy]) @ axes.T
-    inside = np.all(np.abs(local) <= np.maximum(np.array([w / 2, h / 2]) + cfg.margin, cfg.seat_min_side / 2), axis=1)
+    rectangle = min_area_rectangle(patch[:, :2])
+    local = (np.asarray(points)[:, :2] - rectangle.centre) @ rectangle.axes.T
+    inside = np.all(np.abs(local) <= np.maximum(rectangle.half_size + cfg.margin, cfg.seat_min_side / 2), axis=1)
     column = np.asarray(points)[inside]
     column = column[(column[:, 2] <= low + cfg.layer_thickness) & (column[:, 2] >= low - max_drop)]
     z = np.sort(column[:, 2])[::-1]

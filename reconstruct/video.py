@@ -38,11 +38,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.geometry import fit_plane, ransac_plane
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import foot_heights, sole_points
 from crisp_gym.motion import Motion, compute_kinematics, planted_feet
-from crisp_gym.scene import Box
-from crisp_gym.reconstruct.align import fit_plane, ransac_plane
 from crisp_gym.reconstruct.contact import (
     PARTS,
     CompletionResult,
@@ -51,11 +50,18 @@ from crisp_gym.reconstruct.contact import (
     filter_contacts,
     kinematic_contacts,
 )
-from crisp_gym.reconstruct.landmarks import fill_gaps, hips_and_trunk, landmarks_to_motion, leg_lengths, with_leg_lengths
+from crisp_gym.reconstruct.landmarks import (
+    fill_gaps,
+    hips_and_trunk,
+    landmarks_to_motion,
+    leg_lengths,
+    with_leg_lengths,
+)
 from crisp_gym.reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
 from crisp_gym.reconstruct.pipeline import contact_completion
 from crisp_gym.reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
 from crisp_gym.reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
+from crisp_gym.scene import Box
 
 FEET = ("left_heel", "right_heel", "left_foot_index", "right_foot_index", "left_ankle", "right_ankle")
 """Landmarks the lowest point of a foot is taken from."""

@@ -12,11 +12,10 @@ from scipy.spatial import ConvexHull, cKDTree
 import crisp_gym  # noqa: F401  (registers CrispTrack-v0)
 from crisp_gym.clip import load_clip_dir
 from crisp_gym.envs.track import CrispTrackEnv
+from crisp_gym.geometry import intrinsic_from_fov, look_at
 from crisp_gym.metrics import box_signed_distance, support_tops
 from crisp_gym.mjcf_scene import scene_surface
 from crisp_gym.motion import Motion
-from crisp_gym.registry import load_clip
-from crisp_gym.scene import SCENE_CONAFFINITY, SCENE_CONTYPE, Box, write_scene_xml
 from crisp_gym.reconstruct.baselines import (
     ColliderConfig,
     TsdfConfig,
@@ -29,7 +28,9 @@ from crisp_gym.reconstruct.baselines import (
     write_baseline_clips,
 )  # fmt: skip
 from crisp_gym.reconstruct.frames import Frames
-from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.registry import load_clip
+from crisp_gym.scene import SCENE_CONAFFINITY, SCENE_CONTYPE, Box, write_scene_xml
 
 VOXEL = 0.03
 RESOLUTION = 0.05

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crisp_gym.scene import Box, floor_box
+from crisp_gym.geometry import intrinsic_from_fov, look_at
 from crisp_gym.reconstruct.frames import Frames
-from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.scene import Box, floor_box
 
 
 def _render_scene():

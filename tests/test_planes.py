@@ -7,11 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
+from crisp_gym.geometry import intrinsic_from_fov, look_at
 from crisp_gym.metrics import box_signed_distance
-from crisp_gym.scene import Box, floor_box
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.planes import PlaneFitConfig, fit_planes
-from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, intrinsic_from_fov, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.scene import Box, floor_box
 from crisp_gym.synth.scenes import PlatformParams, SeatParams, StairsParams, platform_boxes, seat_boxes, stairs_boxes
 
 STAIRS = StairsParams(riser=0.15, tread=0.30, width=1.2, count=4, start=1.5, landing=1.4)

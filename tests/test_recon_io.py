@@ -10,9 +10,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.geometry import look_at
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import compute_kinematics
-from crisp_gym.scene import Box, floor_box
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.io import (
     PRIMESENSE_INTRINSIC,
@@ -26,7 +26,8 @@ from crisp_gym.reconstruct.io import (
     read_rgbd_folder,
     save_camera_smpl,
 )  # fmt: skip
-from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh, look_at
+from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.scene import Box, floor_box
 from tests.conftest import SHARED_DATA, sway_motion
 
 W, H = 320, 240  # Open3D's odometry runs a 3-level pyramid: at 160 px its coarsest level is too coarse

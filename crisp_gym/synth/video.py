@@ -47,15 +47,16 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from crisp_gym.reconstruct.body_mesh import BodyMesher, pixel_rays
-from crisp_gym.reconstruct.frames import Frames
-from crisp_gym.reconstruct.raycast import box_mesh, intrinsic_from_fov
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from crisp_gym.geometry import intrinsic_from_fov, pixel_rays
 from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid
 from crisp_gym.metrics import box_signed_distance, support_tops
 from crisp_gym.motion import Motion
+from crisp_gym.reconstruct.body_mesh import BodyMesher
+from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.reconstruct.raycast import box_mesh
 from crisp_gym.registry import load_clip
 from crisp_gym.scene import Box
 from crisp_gym.synth.camera import VIEWS, CameraConfig, camera_path, motion_heading
