@@ -33,15 +33,16 @@ import numpy as np
 import tyro
 
 from crisp_gym.humanoid import DOF_NAMES
+from crisp_gym.policy.files import CHECKPOINT_NAME, load_checkpoint
 from crisp_gym.reconstruct.pipeline import ReconstructArgs
 from crisp_gym.reconstruct.pipeline import run as run_reconstruct
 from crisp_gym.synth.truth import write_synth_input
 from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, render_synth_video
-from crisp_gym.train.evaluate import Rollout, evaluate_policy, torch_policy, zero_policy
-from crisp_gym.policy.files import CHECKPOINT_NAME, load_checkpoint
 from crisp_gym.train.checkpoints import load_policy
 from crisp_gym.train.config import cpu_profile
+from crisp_gym.train.evaluate import evaluate_policy
 from crisp_gym.train.ppo import train
+from crisp_gym.train.rollouts import Rollout, torch_policy, zero_policy
 
 SCENES = {"with completion": "kinematic", "without completion": "none"}
 VIEWS = {"chair_sit": "low", "platform_step": "upper_body"}

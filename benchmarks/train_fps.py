@@ -28,9 +28,9 @@ from pathlib import Path
 import torch
 import tyro
 
-from crisp_gym.registry import resolve_clip
 from crisp_gym.policy.networks import ModelConfig
-from crisp_gym.train.config import cpu_profile, paper_profile, TrainConfig
+from crisp_gym.registry import resolve_clip
+from crisp_gym.train.config import TrainConfig, cpu_profile, paper_profile
 from crisp_gym.train.ppo import make_env, train
 
 BASELINE = {"num_envs": 64, "steps_per_env": 128, "minibatch_size": 8192, "epochs": 2, "scene_aware": False,

@@ -1,4 +1,4 @@
-"""Tests of the evaluation (``train/evaluate.py``): metrics against known answers, rollouts
+"""Tests of the evaluation (``train/evaluate.py`` and its roll-outs and metrics): metrics against known answers, rollouts
 against the env, the policy file and ``crisp eval``."""
 
 from __future__ import annotations
@@ -11,16 +11,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.train.rollouts import evaluate, record_rollout, zero_policy
+from crisp_gym.train.tracking_metrics import accel_error, jitter, rigid_align, segment_mpjpe
 from tests.test_train import SMALL_MLP, _obs, clip_dir  # noqa: F401  (clip_dir is a fixture)
-from crisp_gym.train.evaluate import (
-    accel_error,
-    evaluate,
-    jitter,
-    record_rollout,
-    rigid_align,
-    segment_mpjpe,
-    zero_policy,
-)
 
 
 def _pose(seed: int = 0, joints: int = 24) -> np.ndarray:
@@ -154,8 +147,8 @@ def test_rendered_rollout(clip_dir: Path) -> None:  # noqa: F811
 
 @pytest.fixture(scope="module")
 def untrained_run(clip_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
-    from tests.test_train import _tiny_config
     from crisp_gym.train.ppo import train
+    from tests.test_train import _tiny_config
 
     output = tmp_path_factory.mktemp("eval_run")
     train(_tiny_config(clip_dir, output, frames=512, num_envs=4, steps_per_env=64))

@@ -188,7 +188,6 @@ def test_env_adapter_specs_and_final_observations(clip_dir: Path) -> None:
     from torchrl.envs.utils import check_env_specs
 
     from crisp_gym.train.config import paper_profile
-
     from crisp_gym.train.ppo import make_env
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4, scene_aware=True), seed=0)
@@ -211,7 +210,6 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
     from torchrl.objectives.value import GAE
 
     from crisp_gym.train.config import paper_profile
-
     from crisp_gym.train.ppo import build_agent, estimate_values, make_env
 
     env = make_env(paper_profile(clip=str(clip_dir), num_envs=4), seed=1)
@@ -249,10 +247,10 @@ def trained_run(clip_dir: Path, tmp_path_factory):
     fairly well; adding 0.05 rad to every action makes it clearly worse, so a few thousand
     frames of PPO must show a measurable improvement.
     """
-    from crisp_gym.train.evaluate import evaluate
     from crisp_gym.policy.files import load_checkpoint
     from crisp_gym.train.checkpoints import load_policy
     from crisp_gym.train.ppo import train
+    from crisp_gym.train.rollouts import evaluate
 
     output = tmp_path_factory.mktemp("run")
     cfg = _tiny_config(clip_dir, output, frames=0)
@@ -468,7 +466,7 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
                                                                     monkeypatch) -> None:
     """The stop rule reads the evaluation: every clip at the success threshold *and* tracked from
     frame 0 to its end (evaluations replaced by a script, so the rule is tested, not learning)."""
-    from crisp_gym.train import evaluate
+    from crisp_gym.train import rollouts
     from crisp_gym.train.ppo import train
 
     script = iter([{"success": 0.95, "frames": 40, "num_frames": 90, "whole_clip": False},  # frame 0 fails
@@ -477,7 +475,7 @@ def test_until_success_stops_at_the_first_evaluation_that_meets_it(clip_dir: Pat
 
     def scripted(self, policy):
         return {name: next(script) for name in self.names}
-    monkeypatch.setattr(evaluate.LibraryEvaluation, "__call__", scripted)
+    monkeypatch.setattr(rollouts.LibraryEvaluation, "__call__", scripted)
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=100 * 128, eval_every=1, eval_episodes=2,
                        until_success=0.9)
     result = train(cfg)
@@ -539,8 +537,8 @@ def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path,
 def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, monkeypatch) -> None:
     """``best.pt`` holds the weights of the best evaluation (RSI success + share tracked from
     frame 0), not the last one; a resumed run only replaces it with a better one."""
-    from crisp_gym.train import evaluate
     from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train import rollouts
     from crisp_gym.train.ppo import train
 
     scores = iter([(0.5, 20), (0.9, 89), (0.2, 10), (0.8, 80), (0.95, 89)])
@@ -549,7 +547,7 @@ def test_the_best_evaluated_weights_are_kept(clip_dir: Path, tmp_path: Path, mon
         success, frames = next(scores)
         return {name: {"success": success, "frames": frames, "num_frames": 90, "whole_clip": frames == 89}
                 for name in self.names}
-    monkeypatch.setattr(evaluate.LibraryEvaluation, "__call__", scripted)
+    monkeypatch.setattr(rollouts.LibraryEvaluation, "__call__", scripted)
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=3 * 128, eval_every=1, eval_episodes=2)
     train(cfg)
     best = load_checkpoint(tmp_path / "best.pt")

@@ -16,7 +16,13 @@ viser = pytest.importorskip("viser")
 from crisp_gym.humanoid import BODY_NAMES  # noqa: E402
 from crisp_gym.registry import load_clip  # noqa: E402
 from crisp_gym.train.view import (  # noqa: E402
-    REFERENCE_RGB, SIMULATED_RGB, Viewer, ViewArgs, policy_and_clip, policy_track, reference_track,
+    REFERENCE_RGB,
+    SIMULATED_RGB,
+    ViewArgs,
+    Viewer,
+    policy_and_clip,
+    policy_track,
+    reference_track,
 )
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -81,8 +87,8 @@ def test_the_input_point_cloud_lands_on_the_reconstructed_scene(tmp_path):
     from crisp_gym.clip import load_clip_dir
     from crisp_gym.metrics import box_signed_distance
     from crisp_gym.reconstruct import pipeline
-    from tests.conftest import small_synth_input
     from crisp_gym.train.view import input_points
+    from tests.conftest import small_synth_input
 
     source = small_synth_input(tmp_path / "input", "stairs_up", 3)
     out = pipeline.run(pipeline.ReconstructArgs(input=source / "input.npz", motion=source / "motion_camera.npz",

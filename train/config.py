@@ -27,17 +27,17 @@ class TrainConfig:
     """Everything a training run needs; defaults are the paper's values where it gives them.
 
     Attributes:
-        clip: clips to train on: names (registry), registry tags (``bundled``: every bundled
+        clip: clips to train on: names (registry), registry tags (bundled: every bundled
             clip) or clip directories; several make a motion library.
-        clip_weights: relative probability of each clip at a reset (``None``: equal).
-        start_sampling: ``"uniform"`` reference state init or ``"adaptive"`` (starts drawn
-            where episodes recently failed; :mod:`crisp_gym.envs.start_sampler`).
+        clip_weights: relative probability of each clip at a reset (None: equal).
+        start_sampling: "uniform" reference state init or "adaptive" (starts drawn
+            where episodes recently failed; crisp_gym.envs.start_sampler).
         output: run directory (config, checkpoint, CSV log).
-        scene_aware: train the scene-aware policy (``points`` observation, PointNet tokens).
+        scene_aware: train the scene-aware policy (points observation, PointNet tokens).
         frames: total environment steps (the paper does not state its budget).
         num_envs: parallel simulations (paper: 2048).
         steps_per_env: steps collected per simulation and iteration (horizon of the GAE
-            segments; frames per iteration = ``num_envs × steps_per_env``).
+            segments; frames per iteration = num_envs × steps_per_env).
         minibatch_size: samples per gradient step (paper: 8192).
         epochs: passes over each iteration's batch.
         gamma: discount (paper: 0.99).
@@ -46,52 +46,52 @@ class TrainConfig:
         actor_lr: actor learning rate (paper: 2e-5).
         critic_lr: critic learning rate (not in the paper; see the module docstring).
         max_grad_norm: gradient-norm clip, applied to actor and critic separately.
-        critic_loss: ``"l2"`` or ``"smooth_l1"``.
+        critic_loss: "l2" or "smooth_l1".
         normalize_advantage: normalise advantages per minibatch (zero mean, unit std).
         normalize_obs: running observation normalisation (proprio and targets).
         reward_scale: factor on the rewards PPO learns from (not the logged returns); see
-            :class:`~crisp_gym.train.env.TrainingReward`.
+            TrainingReward.
         energy_cap: bound on the energy penalty's magnitude per step in the rewards PPO
-            learns from (``None``: unbounded, as in the paper); see
-            :class:`~crisp_gym.train.env.TrainingReward`.
+            learns from (None: unbounded, as in the paper); see
+            TrainingReward.
         model: actor/critic architecture (paper: transformer actor, [1024, 512] critic).
         seed: seeds torch, the minibatch shuffles and the env's start frames.
-        device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"``...
+        device: "auto" (CUDA when available), "cpu", "cuda"...
         num_threads: MuJoCo threads stepping the batch (0: all CPUs).
         torch_threads: torch intra-op threads (0: torch's default).
         checkpoint_every: iterations between checkpoints (one is also written at the end).
         eval_every: iterations between deterministic evaluations (the policy's mean action, per
-            clip: success from ``eval_episodes`` fixed RSI starts and frames tracked from frame
-            0), logged in ``progress.csv`` and ``evaluation.png``; 0 disables them.
+            clip: success from eval_episodes fixed RSI starts and frames tracked from frame
+            0), logged in progress.csv and evaluation.png; 0 disables them.
         eval_episodes: RSI episodes per clip in each evaluation (plus one from frame 0).
         until_success: stop once an evaluation finds every clip at this RSI success or more,
-            and tracked from frame 0 to the end (``None``: train for ``frames``).
+            and tracked from frame 0 to the end (None: train for frames).
         init_from: warm start: a policy file, run directory or checkpoint whose actor (and,
             from a checkpoint, critic) weights and observation statistics start this run. Its
             architecture must match this run's.
-        critic_warmup: with ``init_from`` and no critic in it, iterations that train only the
+        critic_warmup: with init_from and no critic in it, iterations that train only the
             critic, so a random critic's advantages do not undo the loaded actor.
-        init_stats_samples: with ``init_from``, the loaded observation statistics count as at
-            most this many samples (``None``: as many as built them), so that the new clips'
+        init_stats_samples: with init_from, the loaded observation statistics count as at
+            most this many samples (None: as many as built them), so that the new clips'
             observations move them. The library's statistics come from synthetic clips whose
             arms barely move: a captured person's arm swing normalises to the ±5σ clip on dozens
             of features, and after 19.7 M samples new data barely shifts them.
-        actor_lr_warmup: with ``init_from``, iterations over which the actor's learning rate
+        actor_lr_warmup: with init_from, iterations over which the actor's learning rate
             rises linearly from 0 once it starts training. Adam's first steps move every
             weight by the full learning rate whatever the gradient's size: from a trained
             actor the first update was measured at KL 0.15 with half the samples clipped
             (0.01–0.02 later), and a 97 %-success policy fell to 44 % within 0.5 M frames.
-        resume: continue from ``output/checkpoint.pt``.
+        resume: continue from output/checkpoint.pt.
         progress: show a progress bar.
         ray_workers: collect on this many Ray workers, each with its own batched env of
-            ``num_envs`` simulations (an iteration then has ``ray_workers`` times the frames);
+            num_envs simulations (an iteration then has ray_workers times the frames);
             0: in this process. Each worker's env keeps its own adaptive start sampler, so
-            ``start_failures/*`` in ``progress.csv`` and the checkpoint stay empty.
-        ray_address: a Ray cluster to collect on (``auto``, ``ray://HEAD:10001``); default: a local
-            one of ``ray_workers`` cores.
-        loggers: experiment trackers that also get every ``progress.csv`` scalar (step: frames),
-            through ``torchrl.record.loggers``: ``csv``, ``tensorboard``, ``wandb``, ``mlflow``
-            (the last three need their package: ``pip install 'crisp-gym[tracking]'`` has
+            start_failures/* in progress.csv and the checkpoint stay empty.
+        ray_address: a Ray cluster to collect on (auto, ray://HEAD:10001); default: a local
+            one of ray_workers cores.
+        loggers: experiment trackers that also get every progress.csv scalar (step: frames),
+            through torchrl.record.loggers: csv, tensorboard, wandb, mlflow
+            (the last three need their package: pip install 'crisp-gym[tracking]' has
             TensorBoard and W&B).
     """
 

@@ -34,8 +34,8 @@ class DemoArgs:
 
     Attributes:
         clip: registered clip name or clip directory.
-        all: every bundled clip, one after another (``clip`` is then ignored).
-        policy: policy file, directory or training run (default: the one shipped for ``clip``).
+        all: every bundled clip, one after another (clip is then ignored).
+        policy: policy file, directory or training run (default: the one shipped for clip).
         output: directory for report.json, tracking.png, torques.png and rollout.mp4.
         episodes: episodes from reference-state-init start frames per controller.
         video: render rollout.mp4 (needs headless OpenGL: EGL or OSMesa).
@@ -68,7 +68,8 @@ def shipped_policy(clip: str) -> Path | None:
 def run_demo(args: DemoArgs) -> dict[str, Any]:
     """Evaluate, write the outputs and return the report."""
     from crisp_gym.policy.files import load_actor, policy_training_stats
-    from crisp_gym.train.evaluate import evaluate_policy, torch_policy, write_outputs, zero_policy
+    from crisp_gym.train.evaluate import evaluate_policy, write_outputs
+    from crisp_gym.train.rollouts import torch_policy, zero_policy
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")

@@ -342,7 +342,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             sampler.failures = restored
     evaluation = None
     if cfg.eval_every:
-        from crisp_gym.train.evaluate import LibraryEvaluation, torch_policy
+        from crisp_gym.train.rollouts import LibraryEvaluation, torch_policy
 
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
                                        num_threads=cfg.num_threads)
@@ -414,7 +414,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             history.append(row)
             logger.log(row)
             if evaluation is not None and iteration % cfg.eval_every == 0:
-                from crisp_gym.train.evaluate import plot_evaluations
+                from crisp_gym.train.plots import plot_evaluations
 
                 plot_evaluations(logger.path, out / "evaluation.png", dict(zip(evaluation.names, evaluation.num_frames)))
             bar.update(data.numel())

@@ -32,14 +32,14 @@ class ShipArgs:
     """Export a run's policy with its evaluation and learning curve.
 
     Attributes:
-        run: training run directory (``checkpoint.pt`` and ``progress.csv``).
+        run: training run directory (checkpoint.pt and progress.csv).
         clip: clip names recorded in the policy and evaluated (default: the run's clips; give
             them when the run names machine-specific directories).
-        output: directory to write into (e.g. ``assets/policies/NAME``).
-        best: ship the weights of the run's best periodic evaluation (``best.pt``) instead of
+        output: directory to write into (e.g. assets/policies/NAME).
+        best: ship the weights of the run's best periodic evaluation (best.pt) instead of
             its last checkpoint.
-        with_critic: keep the critic in ``policy.pt`` (a milestone that ``crisp train
-            --init-from`` continues with both networks warm).
+        with_critic: keep the critic in policy.pt (a milestone that crisp train
+            --init-from continues with both networks warm).
         episodes: RSI episodes of the evaluation.
         smooth: iterations in the learning curve's moving average.
     """
@@ -95,7 +95,7 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crisp_gym.train.evaluate import save_figure
+    from crisp_gym.train.plots import save_figure
 
     frames = progress["frames"] / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -115,9 +115,10 @@ def ship(args: ShipArgs) -> dict:
     """Write the files of the module docstring; returns the evaluation report."""
     import shutil
 
-    from crisp_gym.train.evaluate import evaluate_policy, policy_clips, torch_policy, write_json
     from crisp_gym.policy.files import BEST_NAME, policy_training_stats, write_policy_file
     from crisp_gym.train.checkpoints import load_policy
+    from crisp_gym.train.evaluate import evaluate_policy, policy_clips, write_json
+    from crisp_gym.train.rollouts import torch_policy
 
     progress_path = Path(args.run) / "progress.csv"
     progress = read_progress(progress_path)

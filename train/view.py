@@ -42,7 +42,7 @@ class ViewArgs:
     clip: str | None = None
     """With a run or policy: the clip to roll it out on (default: its first training clip)."""
     points: bool = False
-    """Also show the point cloud of the clip's input (``meta.json`` → ``input``), when it can be read."""
+    """Also show the point cloud of the clip's input (meta.json → input), when it can be read."""
     max_points: int = 200_000
     """Points shown at most (a random subset)."""
     port: Annotated[int, tyro.conf.arg(aliases=("-p",))] = 8080
@@ -93,7 +93,7 @@ def policy_track(policy_source: str | Path, clip: str | Path) -> Track:
     """The policy's simulated humanoid from frame 0 of ``clip``, until the episode ends."""
     from crisp_gym.envs.track import CrispTrackEnv  # noqa: PLC0415
     from crisp_gym.policy.files import load_actor  # noqa: PLC0415
-    from crisp_gym.train.evaluate import torch_policy  # noqa: PLC0415
+    from crisp_gym.train.rollouts import torch_policy  # noqa: PLC0415
 
     loaded = load_actor(policy_source)
     policy = torch_policy(loaded.actor, loaded.scene_aware)
