@@ -65,7 +65,7 @@ class ImportMotionArgs:
     file: Annotated[Path, tyro.conf.Positional]
     """A motion file (module docstring for the formats), or a folder of them."""
     name: str
-    """Registered clip name; for a folder, the prefix of ``NAME_<file stem>``."""
+    """Registered clip name; for a folder, the prefix of NAME_<file stem>."""
     output: Annotated[Path | None, tyro.conf.arg(aliases=["-o"])] = None
     """Clip directory (default: the user data dir's clips/NAME); for a folder, the parent of the clips."""
     fps: float = 30.0
@@ -73,9 +73,9 @@ class ImportMotionArgs:
     source_fps: float | None = None
     """Frame rate of the input (default: the file's own)."""
     up_axis: UpAxis = "auto"
-    """Up axis of BVH and SMPL-family input (``auto``: detected and reported)."""
+    """Up axis of BVH and SMPL-family input (auto: detected and reported)."""
     grounding: Grounding = "stance"
-    """``stance``: planted feet on the floor frame by frame; ``constant``: one vertical offset."""
+    """stance: planted feet on the floor frame by frame; constant: one vertical offset."""
     overwrite: bool = False
     """Replace existing clip directories."""
 

@@ -22,9 +22,9 @@ from typing import Annotated
 import tyro
 from tqdm.auto import tqdm
 
-from crisp_gym.registry import register_clip
 from crisp_gym.reconstruct.io import VIDEO_SUFFIXES, is_plain_video
 from crisp_gym.reconstruct.pipeline import ReconstructArgs, run
+from crisp_gym.registry import register_clip
 
 _MOTION_FILES = ("motion_camera.npz", "motion.npz")
 
@@ -38,13 +38,13 @@ class BatchArgs:
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("clips")
     """Where the clips go, one folder per input."""
     address: str | None = None
-    """A Ray cluster to join (``auto`` on one of its nodes, or ``ray://HEAD:10001``); default: a local one."""
+    """A Ray cluster to join (auto on one of its nodes, or ray://HEAD:10001); default: a local one."""
     num_cpus: int | None = None
     """Cores of the local cluster (default: all); one input per core at a time."""
     metric: bool = False
-    """Trust the depth as metres (as ``crisp reconstruct --metric``)."""
+    """Trust the depth as metres (as crisp reconstruct --metric)."""
     contacts: str = "kinematic"
-    """Contact source for every input (``kinematic`` or ``none``)."""
+    """Contact source for every input (kinematic or none)."""
     overwrite: bool = False
     """Replace existing clip folders."""
     register: bool = False

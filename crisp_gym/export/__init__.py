@@ -60,19 +60,19 @@ POLICY_FORMATS: tuple[str, ...] = ("onnx", "torchscript")
 
 @dataclass(frozen=True)
 class ExportConfig:
-    """``crisp export``: write a clip or a trained policy in the formats other stacks read.
+    """crisp export: write a clip or a trained policy in the formats other stacks read.
 
     Attributes:
         source: a clip (registered name or directory) for clip formats; a training checkpoint
-            (``checkpoint.pt`` or its run directory) for ``onnx``/``torchscript``.
-        format: one or more formats; ``all`` is every clip format (all but onnx and torchscript).
+            (checkpoint.pt or its run directory) for onnx/torchscript.
+        format: one or more formats; all is every clip format (all but onnx and torchscript).
         output: folder that receives one subfolder per kind of export.
-        quat_order: quaternion order of the CSV and the ``fields`` npz (``wxyz`` as MuJoCo, Isaac Lab;
-            ``xyzw`` as Isaac Gym, PyBullet).
-        smpl_up_axis: world up axis of the SMPL export (``z`` as AMASS/PHC, ``y`` as SMPL's own).
+        quat_order: quaternion order of the CSV and the fields npz (wxyz as MuJoCo, Isaac Lab;
+            xyzw as Isaac Gym, PyBullet).
+        smpl_up_axis: world up axis of the SMPL export (z as AMASS/PHC, y as SMPL's own).
         color_by_source: colour mesh primitives by source (planar blue, contact orange).
-        keyframes: one MJCF ``<key>`` per motion frame in ``track.xml``.
-        overwrite: replace an existing ``output`` folder (it is written whole beside it and
+        keyframes: one MJCF <key> per motion frame in track.xml.
+        overwrite: replace an existing output folder (it is written whole beside it and
             swapped in, so an interrupted export leaves the previous one as it was).
     """
 

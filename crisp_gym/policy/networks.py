@@ -40,7 +40,7 @@ class ModelConfig:
     """Architecture of the actor and the critic; the defaults are the paper's.
 
     Attributes:
-        actor: ``"transformer"`` (the paper's) or ``"mlp"``.
+        actor: "transformer" (the paper's) or "mlp".
         latent_dim: transformer token width.
         ff_dim: transformer feed-forward width.
         num_layers: transformer encoder layers.

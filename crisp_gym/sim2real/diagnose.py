@@ -28,7 +28,7 @@ from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, 
 
 @dataclass(frozen=True)
 class DiagnoseConfig:
-    """Settings of :func:`diagnose`.
+    """Settings of diagnose.
 
     Attributes:
         window_s: replay window length (s); long enough to see the dynamics (a few PD
@@ -37,14 +37,14 @@ class DiagnoseConfig:
         pairs: how many of the best single effects are also fitted pairwise.
         penalty: per extra parameter, the relative increase of the squared held-out gap a
             candidate is charged in the ranking.
-        none_factor: a held-out gap below ``none_factor`` x the noise floor means "none".
+        none_factor: a held-out gap below none_factor x the noise floor means "none".
         explained_factor: the winner explains the gap if it leaves at most this x the floor.
         max_iter: Levenberg-Marquardt iterations per fit.
         nthread: rollout threads.
         seed: seed of the noise-floor synthesis.
         families: restrict the library to these effect families (empty: all).
         tolerance: a candidate with fewer parameters replaces the best one when their
-            squared held-out gaps differ by less than ``tolerance`` x the squared floor
+            squared held-out gaps differ by less than tolerance x the squared floor
             (the larger of the nominal model's and the best candidate's): below the noise,
             a richer model has not earned its parameters.
         bootstrap: refits for the parametric-bootstrap intervals of an explained winner

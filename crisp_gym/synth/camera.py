@@ -6,10 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from crisp_gym.reconstruct.raycast import look_at
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.geometry import look_at
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, foot_sole_heights
 from crisp_gym.scene import Box
@@ -24,10 +24,10 @@ class CameraConfig:
 
     Attributes:
         fov_x_deg: horizontal field of view (degrees).
-        distance: range of the horizontal distance from the person (m), ``orbit`` and ``upper_body``.
-        height: range of the eye height above the person's support level (m), ``orbit`` and ``upper_body``.
+        distance: range of the horizontal distance from the person (m), orbit and upper_body.
+        height: range of the eye height above the person's support level (m), orbit and upper_body.
         azimuth_deg: range of the camera's angle around the person from their walking direction,
-            to either side (degrees), ``orbit`` and ``upper_body``.
+            to either side (degrees), orbit and upper_body.
         orbit_deg: amplitude of the slow orbit around the person (degrees).
         dolly: amplitude of the slow change of distance (m).
         follow_seconds: lag of the camera operator: the followed target is the pelvis path
@@ -35,15 +35,15 @@ class CameraConfig:
         shake_m: handheld position jitter, standard deviation (m).
         shake_deg: handheld rotation jitter, standard deviation (degrees).
         shake_seconds: time scale of the jitter (s).
-        low_distance: distance range of the ``low`` view (m).
-        low_azimuth_deg: azimuth range of the ``low`` view around the person's facing (degrees).
-        low_eye: the ``low`` view's eye is this far below the lowest raised support top (m range);
-            it never goes below ``min_eye``.
+        low_distance: distance range of the low view (m).
+        low_azimuth_deg: azimuth range of the low view around the person's facing (degrees).
+        low_eye: the low view's eye is this far below the lowest raised support top (m range);
+            it never goes below min_eye.
         min_eye: lowest eye height above the floor (m).
-        upper_fov_x_deg: horizontal field of view of the ``upper_body`` view (degrees): zoomed in on the person.
-        upper_distance: distance range of the ``upper_body`` view (m).
-        upper_height: eye height range of the ``upper_body`` view above the person's support level (m).
-        upper_margin_deg: in the ``upper_body`` view, raised support tops stay at least this far
+        upper_fov_x_deg: horizontal field of view of the upper_body view (degrees): zoomed in on the person.
+        upper_distance: distance range of the upper_body view (m).
+        upper_height: eye height range of the upper_body view above the person's support level (m).
+        upper_margin_deg: in the upper_body view, raised support tops stay at least this far
             below the image's bottom edge (degrees).
     """
 

@@ -184,7 +184,7 @@ def bundle_clips(out_dir: Path = BUNDLED_CLIPS, registry: Path = BUNDLED_REGISTR
 
 @dataclass(frozen=True)
 class SynthClipsArgs:
-    """Regenerate the bundled clips and their registry, or (``--kind``) generate one more clip of a
+    """Regenerate the bundled clips and their registry, or (--kind) generate one more clip of a
     kind and seed and register it in the user registry.
 
     Attributes:

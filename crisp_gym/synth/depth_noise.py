@@ -16,17 +16,17 @@ class DepthNoise:
     """Errors of a monocular depth network (applied in this order).
 
     Attributes:
-        scale_range: the unknown global scale ``s`` is drawn log-uniformly from this range; the
-            input depth and camera translations are the true ones divided by ``s`` (metric = s × input).
+        scale_range: the unknown global scale s is drawn log-uniformly from this range; the
+            input depth and camera translations are the true ones divided by s (metric = s × input).
         scale_drift: standard deviation over the clip of the smooth per-frame scale error
-            (relative; its mean over the clip is 0, so ``s`` stays the clip's true scale).
+            (relative; its mean over the clip is 0, so s stays the clip's true scale).
         drift_seconds: time scale of that drift (s).
         distortion: RMS of a low-frequency multiplicative distortion of each depth map (relative).
         distortion_seconds: period over which the distortion pattern changes (s).
-        pixel_noise: per-pixel Gaussian noise, σ = ``pixel_noise`` × depth² (1/m): it grows with depth.
+        pixel_noise: per-pixel Gaussian noise, σ = pixel_noise × depth² (1/m): it grows with depth.
         flying_pixels: probability that a pixel at a depth edge takes a depth between the
             foreground and the background (a "flying pixel").
-        edge_jump: a relative depth jump within ``edge_width`` pixels that counts as an edge.
+        edge_jump: a relative depth jump within edge_width pixels that counts as an edge.
         edge_width: how many pixels from an edge flying pixels reach.
         holes: fraction of pixels lost in blob-shaped holes (depth 0).
         float16: store depth as float16, as MegaSAM does.
