@@ -45,8 +45,8 @@ from tqdm import tqdm
 
 from crisp_gym.clip import write_clip
 from crisp_gym.motion import Motion
-from crisp_gym.scene import SCENE_CONAFFINITY, SCENE_CONTYPE
 from crisp_gym.reconstruct.frames import Frames
+from crisp_gym.scene import SCENE_CONAFFINITY, SCENE_CONTYPE
 
 BASELINE_KINDS: tuple[str, ...] = ("heightfield", "convex_pieces", "dense_mesh")
 """The ``scene_kind`` values of the clips this module writes."""

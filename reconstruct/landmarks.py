@@ -29,8 +29,8 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid, default_rest_joints
 from crisp_gym.motion import StanceGrounding
-from crisp_gym.retarget import Retargeted, motion_from_rotations
 from crisp_gym.reconstruct.person import landmark
+from crisp_gym.retarget import Retargeted, motion_from_rotations
 
 _STRAIGHT_KNEE_DEG = (15.0, 35.0)  # knee bend over which the thigh's twist moves from the foot to the knee
 _NOSE_FROM_EARS = np.array([1.0, 0.0, -0.3])  # rest direction from the ears' midpoint to the nose

@@ -35,8 +35,8 @@ import trimesh
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import Motion, humanoid_qpos_adr
-from crisp_gym.scene import Box
 from crisp_gym.reconstruct.raycast import box_mesh
+from crisp_gym.scene import Box
 
 Geometry = list[Box] | trimesh.Trimesh
 """A scene: box primitives or a triangle mesh."""

@@ -34,17 +34,12 @@ from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.motion import Motion, compute_kinematics
-from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
-from crisp_gym.scene import Box, save_primitives, write_scene_xml
 from crisp_gym.reconstruct.align import AlignConfig, Alignment, align, transform_motion
 from crisp_gym.reconstruct.contact import (
     CompletionResult,
     ContactConfig,
-    body_geometry,
-    complete_support,
-    filter_contacts,
-    kinematic_contacts,
-    load_external_contacts,
+    ContactSource,
+    contact_completion,
 )
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.io import (
@@ -58,6 +53,8 @@ from crisp_gym.reconstruct.io import (
 )
 from crisp_gym.reconstruct.planes import PlaneFit, PlaneFitConfig, fit_planes
 from crisp_gym.reconstruct.report_page import write_report_page
+from crisp_gym.registry import check_clip_name, plain_clip_name, register_clip
+from crisp_gym.scene import Box, save_primitives, write_scene_xml
 
 
 @dataclass(frozen=True)
@@ -115,8 +112,6 @@ class Reconstruction:
         return meta
 
 
-ContactSource = Literal["kinematic", "none"] | Path
-
 INPUT_FRAME_MAX_TILT_DEG = 5.0
 """``--keep-input-frame`` needs an input whose +z is up within this angle (simulation pulls along −z)."""
 
@@ -138,21 +133,6 @@ def in_input_frame(result: Reconstruction) -> Reconstruction:
 
 
 
-def contact_completion(motion: Motion, boxes: list[Box], source: ContactSource, cfg: ContactConfig,
-                       vertex_map: Path | None = None) -> CompletionResult | None:
-    """Supports the motion's contacts need and ``boxes`` lack (``None`` for ``source="none"``)."""
-    if isinstance(source, str) and source == "none":
-        return None
-    geometry = body_geometry(motion)
-    if isinstance(source, str) and source == "kinematic":
-        evidence = kinematic_contacts(motion, cfg.kinematic, geometry)
-    else:
-        evidence = load_external_contacts(source, motion, vertex_map, cfg.vertex_quantile)
-    contacts = filter_contacts(evidence, motion, cfg.filter, geometry)
-    # The clip's scene is only its boxes: the aligned z = 0 holds the humanoid only where a floor
-    # box covers it. Floor contacts that the seen floor does not cover (the view cut it off, or
-    # only a far patch of floor was seen) must build their support like any other unseen surface.
-    return complete_support(contacts, boxes, replace(cfg.completion, floor_height=None))
 
 
 def reconstruct(frames: Frames, motion: MotionInput | None = None, config: ReconstructConfig | None = None,
@@ -222,7 +202,7 @@ class ReconstructArgs:
     contacts: str = "kinematic"
     """Contact source: "kinematic" (from the motion), "none", or a contacts file (contacts.npz or per-vertex npz)."""
     vertex_map: Path | None = None
-    """For per-vertex contact files: an npz with ``vertex_body`` (6890,) mapping SMPL vertices to bodies."""
+    """For per-vertex contact files: an npz with vertex_body (6890,) mapping SMPL vertices to bodies."""
     metric: bool = False
     """Trust the depth as metres (required without --motion)."""
     keep_input_frame: bool = False

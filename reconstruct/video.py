@@ -47,6 +47,7 @@ from crisp_gym.reconstruct.contact import (
     CompletionResult,
     ContactConfig,
     body_geometry,
+    contact_completion,
     filter_contacts,
     kinematic_contacts,
 )
@@ -58,7 +59,6 @@ from crisp_gym.reconstruct.landmarks import (
     with_leg_lengths,
 )
 from crisp_gym.reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
-from crisp_gym.reconstruct.pipeline import contact_completion
 from crisp_gym.reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
 from crisp_gym.reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 from crisp_gym.scene import Box

@@ -13,13 +13,24 @@ from scipy.spatial.transform import Rotation
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.metrics import support_tops
 from crisp_gym.motion import Motion, compute_kinematics, ground
+from crisp_gym.reconstruct.contact import (
+    NUM_SMPL_VERTICES,
+    PART_OF,
+    PARTS,
+    CompletionConfig,
+    ContactEvidence,
+    FilterConfig,
+    body_geometry,
+    complete_support,
+    contact_labels,
+    filter_contacts,
+    kinematic_contacts,
+    load_external_contacts,
+    save_contacts,
+)  # fmt: skip
 from crisp_gym.registry import load_clip
 from crisp_gym.scene import Box, floor_box
 from crisp_gym.smpl import SMPL_JOINT_NAMES, SMPL_TO_BODY
-from crisp_gym.reconstruct.contact import (
-    NUM_SMPL_VERTICES, PART_OF, PARTS, CompletionConfig, ContactEvidence, FilterConfig, body_geometry,
-    complete_support, contact_labels, filter_contacts, kinematic_contacts, load_external_contacts, save_contacts,
-)  # fmt: skip
 from crisp_gym.synth.clips import make_clip
 
 SURFACE_TOLERANCE = 0.05  # m: the issue's bound on a contact box's top
@@ -428,8 +439,7 @@ def test_bad_contact_files_are_clear_errors(tmp_path):
 def test_floor_the_camera_missed_is_built_under_the_feet():
     """The scene is only its boxes: when the seen floor is a far patch, the pipeline's completion
     builds floor under the walking feet (the humanoid would fall through z = 0 otherwise)."""
-    from crisp_gym.reconstruct.contact import ContactConfig
-    from crisp_gym.reconstruct.pipeline import contact_completion
+    from crisp_gym.reconstruct.contact import ContactConfig, contact_completion
 
     clip = load_clip("flat_walk")
     far_patch = Box(center=[clip.motion.root_pos[:, 0].max() + 3.0, 0.0, -0.025], half_size=[0.3, 0.3, 0.025])

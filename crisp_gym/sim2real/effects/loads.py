@@ -1,0 +1,156 @@
+"""Effects of the load the joints carry: mass scale, a shifted centre of mass, and dry friction that
+grows with the load (load-dependent) or falls with speed (Stribeck)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from crisp_gym.sim2real.effects.base import Effect, Param, joint_actuators, speed_scale, torque_scale
+from crisp_gym.sim2real.replay import Trajectory
+
+
+class MassScale(Effect):
+    """The links are heavier or lighter than modelled (payload, wrong CAD densities):
+    masses and inertias of every body moved by a target joint, times ``scale``."""
+
+    name, family, touches_model, per_joint_allowed, focus_allowed = "mass_scale", "mass", True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return [Param("scale", 1.0, 0.3, 3.0, 0.01, "")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        return [np.array([s]) for s in (0.7, 1.0, 1.5)]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        bodies = _moved_bodies(model, [model.joint(tr.log.joint_names[c]).id for c in self.columns(tr)])
+        model.body_mass[bodies] *= x[0]
+        model.body_inertia[bodies] *= x[0]
+
+
+def _moved_bodies(model: mujoco.MjModel, jids: list[int]) -> np.ndarray:
+    """Bodies at or below the bodies of the given joints."""
+    roots = {int(model.jnt_bodyid[j]) for j in jids}
+    moved = []
+    for b in range(1, model.nbody):
+        a = b
+        while a > 0 and a not in roots:
+            a = int(model.body_parentid[a])
+        if a in roots:
+            moved.append(b)
+    return np.array(moved, dtype=int)
+
+
+class ComShift(Effect):
+    """The link's centre of mass is off (payload mounted off-centre, wrong CAD): the COM
+    of each target joint's body moves ``along`` the lever (joint axis to COM) and
+    ``across`` it, in the plane normal to the joint axis (the axial part has no effect)."""
+
+    name, family, touches_model, per_joint_allowed, focus_allowed = "com_shift", "mass", True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        reach = max(2.0 * float(lever_scale(tr)[self.columns(tr)].max()), 0.05)
+        return [Param("along", 0.0, -reach, reach, 1e-4, "m"), Param("across", 0.0, -reach, reach, 1e-4, "m")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        r = 0.1 * float(lever_scale(tr)[self.columns(tr)].max())
+        return [np.array([a, b]) for a in (-r, r) for b in (-r, r)]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        for c in self.columns(tr):
+            jid = model.joint(tr.log.joint_names[c]).id
+            along, across = _lever_frame(model, jid)
+            model.body_ipos[model.jnt_bodyid[jid]] += x[0] * along + x[1] * across
+
+
+def _lever(model: mujoco.MjModel, jid: int) -> tuple[np.ndarray, np.ndarray]:
+    """The joint's unit axis and its lever: the vector from the axis to the COM of the
+    joint's body, normal to the axis (both in the body frame)."""
+    axis = model.jnt_axis[jid] / np.linalg.norm(model.jnt_axis[jid])
+    r = model.body_ipos[model.jnt_bodyid[jid]] - model.jnt_pos[jid]
+    return axis, r - (r @ axis) * axis
+
+
+def _lever_frame(model: mujoco.MjModel, jid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors, in the joint's body frame, along the lever and across it."""
+    axis, r = _lever(model, jid)
+    if np.linalg.norm(r) < 1e-6:  # COM on the axis: any normal direction will do
+        r = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    along = r / np.linalg.norm(r)
+    return along, np.cross(axis, along)
+
+
+def lever_scale(tr: Trajectory) -> np.ndarray:
+    """Per logged joint, the length of its lever (:func:`_lever`), at least 1 cm."""
+    return np.array([max(float(np.linalg.norm(_lever(tr.model, tr.model.joint(n).id)[1])), 0.01)
+                     for n in tr.log.joint_names])
+
+
+def actuator_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, ctrl: np.ndarray, enabled: np.ndarray,
+                    qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """(k, len(cols)) torque the joint actuators apply to each target joint at the given
+    states: the affine actuator law (gain x ctrl + bias), clamped to its force range, zero
+    where the actuator is off. This is the torque the gear train transmits."""
+    out = np.zeros((len(ctrl), len(cols)))
+    for i, (c, acts) in enumerate(zip(cols, joint_actuators(tr, cols))):
+        for a in acts:
+            gear = model.actuator_gear[a, 0]
+            force = (model.actuator_gainprm[a, 0] * ctrl[:, a] + model.actuator_biasprm[a, 0]
+                     + model.actuator_biasprm[a, 1] * gear * qpos[:, c] + model.actuator_biasprm[a, 2] * gear * qvel[:, c])
+            if model.actuator_forcelimited[a]:
+                force = np.clip(force, *model.actuator_forcerange[a])
+            out[:, i] += gear * force * enabled[:, a]
+    return out
+
+
+class LoadFriction(Effect):
+    """Gear friction that grows with the torque the gear train transmits (BAM's
+    load-dependent friction): up to ``mu`` x |actuator torque| of dry friction. Under
+    load it holds the joint still long after the command has moved (stick phases that
+    Coulomb + viscous friction cannot reproduce)."""
+
+    name = family = "load_friction"
+    state_friction = True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return self.expand([Param("mu", 0.0, 0.0, 0.95, 0.005, "N·m per N·m")], tr)
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        n = len(self.params(tr))
+        return [np.full(n, m) for m in (0.05, 0.15, 0.4)]
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        cols = self.columns(tr)
+        out = np.zeros(qpos.shape)
+        out[:, cols] = self.values(x, tr) * np.abs(actuator_torque(model, tr, cols, ctrl, enabled, qpos, qvel))
+        return out
+
+
+class StribeckFriction(Effect):
+    """Extra dry friction near rest that fades with speed (Stribeck effect): ``static``
+    x exp(-(v / ``velocity``)^2) on top of the model's friction: breakaway is harder than
+    sliding."""
+
+    name = family = "stribeck_friction"
+    state_friction, per_joint_allowed, focus_allowed = True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        cols = self.columns(tr)
+        ts = float(torque_scale(tr)[cols].max())
+        vs = float(speed_scale(tr)[cols].max())
+        return [Param("static", 0.0, 0.0, 5 * ts, 0.02 * ts, "N·m"),
+                Param("velocity", 0.2 * vs, 0.02 * vs, 2 * vs, 0.005 * vs, "rad/s")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        cols = self.columns(tr)
+        ts = float(torque_scale(tr)[cols].max())
+        vs = float(speed_scale(tr)[cols].max())
+        return [np.array([f * ts, v * vs]) for f in (0.1, 0.4) for v in (0.1, 0.4)]
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        cols = self.columns(tr)
+        out = np.zeros(qpos.shape)
+        out[:, cols] = x[0] * np.exp(-(qvel[:, cols] / x[1]) ** 2)
+        return out
