@@ -35,9 +35,9 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from crisp_gym.metrics import box_signed_distance
-from crisp_gym.scene import Box
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.planes import PlaneFitConfig, fit_planes
+from crisp_gym.scene import Box
 from crisp_gym.synth.video import SynthVideoConfig, benchmark_suite, render_synth_video
 
 PLANE_COSINE = np.cos(np.radians(18.0))

@@ -32,7 +32,6 @@ import numpy as np
 from tqdm import tqdm
 
 from crisp_gym.metrics import support_tops
-from crisp_gym.scene import Box
 from crisp_gym.reconstruct.baselines import TsdfConfig, tsdf_mesh
 from crisp_gym.reconstruct.io import read_frames, read_motion
 from crisp_gym.reconstruct.metrics import (
@@ -44,6 +43,7 @@ from crisp_gym.reconstruct.metrics import (
     support_coverage,
 )
 from crisp_gym.reconstruct.pipeline import Reconstruction, reconstruct
+from crisp_gym.scene import Box
 from crisp_gym.synth.truth import load_ground_truth, write_synth_input
 from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video
 

@@ -27,7 +27,13 @@ from crisp_gym.reconstruct.body_mesh import BodyMesher
 from crisp_gym.reconstruct.io import MotionInput
 from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
 from crisp_gym.synth.truth import alignment_errors
-from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video  # fmt: skip
+from crisp_gym.synth.video import (  # fmt: skip
+    SynthSpec,
+    SynthVideoConfig,
+    benchmark_suite,
+    occluded_suite,
+    render_synth_video,
+)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,13 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, joint_range_deg
 from crisp_gym.motion import (
-    Motion, StanceGrounding, ground, ground_stance, level_feet, low_pass_joints, rotations_to_hinge_angles,
+    Motion,
+    StanceGrounding,
+    ground,
+    ground_stance,
+    level_feet,
+    low_pass_joints,
+    rotations_to_hinge_angles,
 )
 
 log = logging.getLogger(__name__)

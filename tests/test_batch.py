@@ -10,8 +10,8 @@ import pytest
 pytest.importorskip("ray")
 
 from crisp_gym.clip import load_clip_dir  # noqa: E402
-from crisp_gym.registry import list_clips  # noqa: E402
 from crisp_gym.reconstruct import batch, pipeline  # noqa: E402
+from crisp_gym.registry import list_clips  # noqa: E402
 from tests.conftest import small_synth_input  # noqa: E402
 
 

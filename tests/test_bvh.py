@@ -14,8 +14,15 @@ from scipy.spatial.transform import Rotation
 from crisp_gym.bvh import JOINT_MAPS, bvh_forward_kinematics, load_bvh, parse_bvh, retarget_bvh
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid, default_rest_joints, joint_range_deg
-from crisp_gym.motion import (Motion, StanceGrounding, compute_kinematics, foot_sole_heights, ground_stance,
-                              planted_feet, stance_floor)
+from crisp_gym.motion import (
+    Motion,
+    StanceGrounding,
+    compute_kinematics,
+    foot_sole_heights,
+    ground_stance,
+    planted_feet,
+    stance_floor,
+)
 from crisp_gym.scene import floor_box
 from tests.conftest import SHARED_DATA
 

@@ -27,17 +27,17 @@ from crisp_gym.clip import load_clip_dir, write_clip
 from crisp_gym.export.motion_formats import write_motion_csv, write_motion_npz
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.import_motion import read_motion
+from crisp_gym.reconstruct.io import read_frames
 from crisp_gym.registry import list_clips, load_clip
 from crisp_gym.scene import Box, floor_box
 from crisp_gym.sim2real.cli import load_any
 from crisp_gym.sim2real.log import RealLog, save_log
 from crisp_gym.sim2real.models import SERVO_ACTUATOR, SERVO_JOINT, build_servo_pendulum_spec
-from crisp_gym.reconstruct.io import read_frames
+from crisp_gym.train.checkpoints import load_policy
 from tests.conftest import sway_motion
 from tests.test_bvh import BVH_TO_OURS, CMU_UNIT, cgspeed_joints, pose_rotations, write_bvh
 from tests.test_import_motion import _protomotions_file
 from tests.test_recon_io import _npz_arrays, _write_tum
-from crisp_gym.train.checkpoints import load_policy
 
 MAX_BYTES = 2 * 1024**3
 MODEL = build_humanoid()

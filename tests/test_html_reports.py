@@ -13,9 +13,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from crisp_gym.reconstruct import pipeline
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.report import write_report
-from crisp_gym.reconstruct import pipeline
 from tests.conftest import small_synth_input
 from tests.test_sim2real_diagnose import _case as servo_case
 

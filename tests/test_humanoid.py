@@ -2,8 +2,17 @@ import mujoco
 import numpy as np
 import pytest
 
-from crisp_gym.humanoid import (BODY_NAMES, DEFAULT_MODEL_PATH, DOF_NAMES, GAIN_GROUPS, HumanoidConfig,
-                                build_humanoid, build_humanoid_spec, default_rest_joints, joint_range_deg)
+from crisp_gym.humanoid import (
+    BODY_NAMES,
+    DEFAULT_MODEL_PATH,
+    DOF_NAMES,
+    GAIN_GROUPS,
+    HumanoidConfig,
+    build_humanoid,
+    build_humanoid_spec,
+    default_rest_joints,
+    joint_range_deg,
+)
 
 
 def test_shipped_model_is_what_the_code_generates():

@@ -8,11 +8,17 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.motion import compute_kinematics
-from crisp_gym.registry import load_clip
-from crisp_gym.reconstruct.landmarks import body_rotations, fill_gaps, landmarks_to_motion, leg_lengths, with_leg_lengths
+from crisp_gym.reconstruct.landmarks import (
+    body_rotations,
+    fill_gaps,
+    landmarks_to_motion,
+    leg_lengths,
+    with_leg_lengths,
+)
 from crisp_gym.reconstruct.person import LANDMARKS, landmark
 from crisp_gym.reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
 from crisp_gym.reconstruct.video import adjust_legs
+from crisp_gym.registry import load_clip
 
 # Landmark -> (body whose frame carries it, offset in that body's frame): where MediaPipe's
 # landmarks sit on our skeleton, so a posed humanoid gives the landmarks a video of it would.

@@ -7,8 +7,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import DOF_NAMES
-from crisp_gym.metrics import (box_signed_distance, contact_height_error, foot_skating, motion_plausibility,
-                               scene_model, scene_penetration, sole_points, support_tops)
+from crisp_gym.metrics import (
+    box_signed_distance,
+    contact_height_error,
+    foot_skating,
+    motion_plausibility,
+    scene_model,
+    scene_penetration,
+    sole_points,
+    support_tops,
+)
 from crisp_gym.motion import Motion
 from crisp_gym.scene import Box, floor_box
 

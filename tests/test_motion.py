@@ -3,8 +3,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
-from crisp_gym.motion import (Motion, compute_kinematics, foot_sole_heights, ground, hinge_angles_to_rotations,
-                              level_feet, low_pass_joints, planted_feet, rotations_to_hinge_angles)
+from crisp_gym.motion import (
+    Motion,
+    compute_kinematics,
+    foot_sole_heights,
+    ground,
+    hinge_angles_to_rotations,
+    level_feet,
+    low_pass_joints,
+    planted_feet,
+    rotations_to_hinge_angles,
+)
 from tests.conftest import sway_motion
 
 

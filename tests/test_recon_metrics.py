@@ -7,7 +7,6 @@ import pytest
 import trimesh
 
 from crisp_gym.metrics import box_signed_distance
-from crisp_gym.scene import Box, floor_box
 from crisp_gym.reconstruct.metrics import (
     chamfer_gt_to_recon,
     chamfer_recon_to_gt,
@@ -20,6 +19,7 @@ from crisp_gym.reconstruct.metrics import (
     surface_mesh,
 )
 from crisp_gym.reconstruct.raycast import box_mesh
+from crisp_gym.scene import Box, floor_box
 from crisp_gym.synth.scenes import StairsParams, stairs_boxes
 from tests.conftest import sway_motion
 

@@ -7,8 +7,16 @@ from scipy.spatial.transform import Rotation
 
 from crisp_gym.clip import load_clip_dir, write_clip
 from crisp_gym.registry import list_clips, load_clip, register_clip, resolve_clip
-from crisp_gym.scene import (Box, build_scene_spec, floor_box, load_primitives, load_scene_xml, sample_surface_points,
-                             save_primitives, write_scene_xml)
+from crisp_gym.scene import (
+    Box,
+    build_scene_spec,
+    floor_box,
+    load_primitives,
+    load_scene_xml,
+    sample_surface_points,
+    save_primitives,
+    write_scene_xml,
+)
 from tests.conftest import sway_motion
 
 

@@ -14,13 +14,19 @@ from crisp_gym.clip import load_clip_dir
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.metrics import box_signed_distance
 from crisp_gym.motion import compute_kinematics
-from crisp_gym.synth import truth, video_cli
 from crisp_gym.reconstruct.frames import Frames
 from crisp_gym.reconstruct.io import read_frames, read_motion
 from crisp_gym.reconstruct.raycast import DepthRenderer, box_mesh
+from crisp_gym.synth import truth, video_cli
 from crisp_gym.synth.depth_noise import DepthNoise
 from crisp_gym.synth.truth import load_ground_truth, write_synth_input
-from crisp_gym.synth.video import SynthSpec, SynthVideoConfig, benchmark_suite, occluded_suite, render_synth_video  # fmt: skip
+from crisp_gym.synth.video import (  # fmt: skip
+    SynthSpec,
+    SynthVideoConfig,
+    benchmark_suite,
+    occluded_suite,
+    render_synth_video,
+)
 
 SMALL = SynthVideoConfig(width=96, height=72, frames=40)
 ONLY = {name: replace(DepthNoise.clean(), **{name: value}) for name, value in

@@ -10,9 +10,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from crisp_gym.envs import tracking
 from crisp_gym.envs.config import TrackConfig, default_config
 from crisp_gym.envs.library import ClipSource
-from crisp_gym.envs import tracking
 from crisp_gym.envs.task import TrackingTask
 from crisp_gym.render import EnvDisplay
 

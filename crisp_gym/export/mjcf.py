@@ -28,10 +28,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.atomic import write_text
 from crisp_gym.clip import Clip
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.tracking import build_track_spec
-from crisp_gym.atomic import write_text
 from crisp_gym.humanoid import BODY_NAMES, ROOT_JOINT, HumanoidConfig, build_humanoid_spec
 from crisp_gym.scene import Box, build_scene_spec
 

@@ -36,8 +36,8 @@ import yourdfpy
 from lxml import etree
 from yourdfpy import urdf as U
 
-from crisp_gym.export.actuators import actuator_table, joint_servos
 from crisp_gym.atomic import atomic_path, write_text
+from crisp_gym.export.actuators import actuator_table, joint_servos
 from crisp_gym.export.meshes import SOURCE_RGBA
 from crisp_gym.humanoid import HumanoidConfig, build_humanoid
 from crisp_gym.scene import Box

@@ -202,6 +202,14 @@ def _check_points(scene_aware: bool, points: torch.Tensor | None) -> None:
         raise ValueError("this network is scene-aware: pass the 'points' observation")
 
 
+def _flat_features(normalizer: ObsNormalizer, scene_aware: bool, proprio: torch.Tensor, targets: torch.Tensor,
+                   points: torch.Tensor | None) -> list[torch.Tensor]:
+    """[normalised proprio, normalised targets flattened], the MLPs' inputs before the points."""
+    _check_points(scene_aware, points)
+    proprio, targets = normalizer(proprio, targets)
+    return [proprio, targets.flatten(-2)]
+
+
 class TransformerActor(nn.Module):
     """The paper's transformer actor: observation tokens → encoder → mean pool → action means.
 
@@ -291,9 +299,7 @@ class MLPActor(nn.Module):
     def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
                 points: torch.Tensor | None = None) -> torch.Tensor:
         """Action means (…, 69)."""
-        _check_points(self.scene_aware, points)
-        proprio, targets = self.normalizer(proprio, targets)
-        features = [proprio, targets.flatten(-2)]
+        features = _flat_features(self.normalizer, self.scene_aware, proprio, targets, points)
         if self.scene_aware:
             features.append(self.pointnet(points))
         return self.net(torch.cat(features, dim=-1))
@@ -341,9 +347,7 @@ class Critic(nn.Module):
     def forward(self, proprio: torch.Tensor, targets: torch.Tensor,
                 points: torch.Tensor | None = None) -> torch.Tensor:
         """State values (…, 1)."""
-        _check_points(self.scene_aware, points)
-        proprio, targets = self.normalizer(proprio, targets)
-        features = [proprio, targets.flatten(-2)]
+        features = _flat_features(self.normalizer, self.scene_aware, proprio, targets, points)
         if self.scene_aware:
             features.append(points.flatten(-2))
         return self.net(torch.cat(features, dim=-1))

@@ -8,11 +8,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from crisp_gym.reconstruct.io import save_camera_smpl
 
 from crisp_gym.atomic import atomic_directory
 from crisp_gym.clip import write_clip
 from crisp_gym.motion import Motion
+from crisp_gym.reconstruct.io import save_camera_smpl
 from crisp_gym.scene import Box, load_primitives
 from crisp_gym.synth.video import SynthVideo
 

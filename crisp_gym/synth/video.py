@@ -64,7 +64,7 @@ from crisp_gym.synth.clips import KINDS, make_clip
 from crisp_gym.synth.depth_noise import DepthNoise, NoiseModel
 
 VIDEO_KINDS: tuple[str, ...] = (*KINDS, "random")
-"""Scene kinds: those of :func:`crisp_gym.reconstruct.synth.make_clip`, and ``random`` (one of the kinds with
+"""Scene kinds: those of :func:`crisp_gym.synth.clips.make_clip`, and ``random`` (one of the kinds with
 raised supports, chosen by the seed, with background boxes)."""
 
 
@@ -316,7 +316,7 @@ def render_synth_video(spec: SynthSpec, config: SynthVideoConfig | None = None,
     frames = Frames(depth=depth, intrinsic=intrinsic, cam_c2w=input_poses, fps=motion.fps, rgb=rgb, person_mask=mask)
     person_pixels = mask.reshape(n, -1).sum(axis=1)
     meta = {
-        "source": "synthetic-video", "generator": "crisp_gym.reconstruct.synth_video.render_synth_video",
+        "source": "synthetic-video", "generator": "crisp_gym.synth.video.render_synth_video",
         "name": spec.name, "spec": asdict(spec), "kind": kind, "scale": noise.scale,
         "image_size": [width, height], "fps": motion.fps, "num_frames": n,
         "config": asdict(cfg), "clip_meta": clip_meta, "render_seconds": render_seconds,
