@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Installs what crisp-gym needs on a fresh Debian/Ubuntu machine: system libraries for
 # Open3D (libusb) and headless rendering (EGL/OSMesa), Chromium (the tests open the HTML reports
-# in it), then the package itself (editable,
-# so the bundled assets and registry.yaml next to it are found) with its test and video extras,
+# in it), then the package itself (editable, so that edits to the checkout take effect; reconstruct/,
+# train/ and assets/ install under crisp_gym) with its test and video extras,
 # and MediaPipe for the video path in its private folder.
 # PyTorch is pinned first: an unpinned torch would pull several GB of CUDA wheels.
 set -euo pipefail
