@@ -265,6 +265,27 @@ def _collector(cfg: TrainConfig, env: Any, env_fn: Callable[[TrainConfig, int], 
     return collector
 
 
+def _load_start_state(agent: Agent, optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                      cfg: TrainConfig, saved: dict[str, Any] | None, warm: dict[str, Any] | None) -> None:
+    """Where a run starts: a resumed run's checkpoint (weights, optimiser, random state), else a
+    warm start's weights and observation statistics, else nothing (fresh weights)."""
+    if saved:
+        agent.actor.load_state_dict(saved["actor"])
+        agent.critic.load_state_dict(saved["critic"])
+        optimizer.load_state_dict(saved["optimizer"])
+        # the saved param groups carry the old learning rates: the config's must win on resume
+        for group, lr in zip(optimizer.param_groups, (cfg.actor_lr, cfg.critic_lr)):
+            group["lr"] = lr
+        generator.set_state(saved["generator"])
+        torch.set_rng_state(saved["torch_rng"])
+    elif warm is not None:  # a new warm-started run (a resumed one has its weights in the checkpoint)
+        agent.actor.load_state_dict(warm["actor"])  # the observation statistics come with it
+        if "critic" in warm:
+            agent.critic.load_state_dict(warm["critic"])
+        if cfg.init_stats_samples is not None:
+            agent.normalizer.limit_count(cfg.init_stats_samples)
+
+
 def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = None) -> TrainResult:
     """Train (or, with ``cfg.resume``, continue training) a tracking policy; see the module docstring.
 
@@ -313,21 +334,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         {"params": list(agent.actor.parameters()), "lr": cfg.actor_lr},
         {"params": list(agent.critic.parameters()), "lr": cfg.critic_lr},
     ], fused=True)  # one kernel for all parameters: a few % of a CPU update
-    if saved:
-        agent.actor.load_state_dict(saved["actor"])
-        agent.critic.load_state_dict(saved["critic"])
-        optimizer.load_state_dict(saved["optimizer"])
-        # the saved param groups carry the old learning rates: the config's must win on resume
-        for group, lr in zip(optimizer.param_groups, (cfg.actor_lr, cfg.critic_lr)):
-            group["lr"] = lr
-        generator.set_state(saved["generator"])
-        torch.set_rng_state(saved["torch_rng"])
-    elif warm is not None:  # a new warm-started run (a resumed one has its weights in the checkpoint)
-        agent.actor.load_state_dict(warm["actor"])  # the observation statistics come with it
-        if "critic" in warm:
-            agent.critic.load_state_dict(warm["critic"])
-        if cfg.init_stats_samples is not None:
-            agent.normalizer.limit_count(cfg.init_stats_samples)
+    _load_start_state(agent, optimizer, generator, cfg, saved, warm)
     # a loaded actor with a fresh critic: let the critic learn its values before the actor moves
     critic_only_until = cfg.critic_warmup if warm is not None and "critic" not in warm else 0
     ramp = cfg.actor_lr_warmup if warm is not None else 0
