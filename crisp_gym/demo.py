@@ -84,7 +84,8 @@ def run_demo(args: DemoArgs) -> dict[str, Any]:
     else:
         actor, cfg = load_policy(policy_path)
         metrics, rollout = evaluate_policy(torch_policy(actor, cfg.scene_aware), args.clip, episodes=args.episodes,
-                                           seed=args.seed, scene_aware=cfg.scene_aware, render=args.video)
+                                           seed=args.seed, scene_aware=cfg.scene_aware, render=args.video,
+                                           velocity_feedforward=cfg.velocity_feedforward)
         report = {"clip": args.clip, "controller": "policy", "policy": _display_path(policy_path),
                   "actor": cfg.model.actor, "training": policy_training_stats(policy_path), **metrics,
                   "comparison": {"pd_reference": baseline}}

@@ -79,6 +79,9 @@ class TrainConfig:
             where episodes recently failed; :mod:`crisp_gym.envs.start_sampler`).
         output: run directory (config, checkpoint, CSV log).
         scene_aware: train the scene-aware policy (``points`` observation, PointNet tokens).
+        velocity_feedforward: PD targets lead the reference by the servos' ``kd / kp`` times its
+            hinge velocities (:class:`~crisp_gym.envs.config.TrackConfig`); needed for fast
+            captured moves, whose damping lag exceeds the residual action's range.
         frames: total environment steps (the paper does not state its budget).
         num_envs: parallel simulations (paper: 2048).
         steps_per_env: steps collected per simulation and iteration (horizon of the GAE
@@ -145,6 +148,7 @@ class TrainConfig:
     start_sampling: str = "uniform"
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/track")
     scene_aware: bool = False
+    velocity_feedforward: bool = False
     frames: int = 1_000_000_000
     num_envs: int = 2048
     steps_per_env: int = 32
@@ -330,7 +334,8 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
 
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
-                           clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling)
+                           clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling,
+                           velocity_feedforward=cfg.velocity_feedforward)
     return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 
@@ -862,7 +867,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         from train.evaluate import LibraryEvaluation, torch_policy
 
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
-                                       num_threads=cfg.num_threads)
+                                       num_threads=cfg.num_threads, velocity_feedforward=cfg.velocity_feedforward)
     logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=_clip_fields(clip_names, cfg),
                        kinds=cfg.loggers)
     history: list[dict[str, float]] = []
