@@ -79,9 +79,9 @@ class TrainConfig:
             where episodes recently failed; :mod:`crisp_gym.envs.start_sampler`).
         output: run directory (config, checkpoint, CSV log).
         scene_aware: train the scene-aware policy (``points`` observation, PointNet tokens).
-        velocity_feedforward: PD targets lead the reference by the servos' ``kd / kp`` times its
-            hinge velocities (:class:`~crisp_gym.envs.config.TrackConfig`); needed for fast
-            captured moves, whose damping lag exceeds the residual action's range.
+        velocity_feedforward: PD targets lead the reference by the servos' kd/kp times its hinge
+            velocities, so fast moves are not lagged by the servos' damping (the env option of
+            the same name).
         frames: total environment steps (the paper does not state its budget).
         num_envs: parallel simulations (paper: 2048).
         steps_per_env: steps collected per simulation and iteration (horizon of the GAE
