@@ -192,3 +192,37 @@ def test_pd_targets(ref, rng, residual):
             expected = ranges[:, 0] + (clipped[n] + 1.0) / 2.0 * (ranges[:, 1] - ranges[:, 0])
         np.testing.assert_allclose(got[n], expected, **TOL)
     assert np.abs(action).max() > 1.0  # the input is left as it was
+
+
+def test_pd_targets_velocity_feedforward(ref, rng):
+    cfg = TrackConfig(action_scale=0.4, velocity_feedforward=True)
+    lead = rng.uniform(0.05, 0.2, 69)
+    action = rng.uniform(-1.0, 1.0, (N, 69))
+    frame = rng.integers(0, T, N)
+    got = tracking.pd_targets(action, ref, frame, cfg, np.zeros((69, 2)), lead)
+    plain = tracking.pd_targets(action, ref, frame, dataclasses.replace(cfg, velocity_feedforward=False), None)
+    for n in range(N):
+        np.testing.assert_allclose(got[n] - plain[n], lead * ref.qvel[frame[n], 6:], **TOL)
+    with pytest.raises(ValueError, match="damping lead"):
+        tracking.pd_targets(action, ref, frame, cfg, np.zeros((69, 2)))
+
+
+def test_damping_lead_cancels_a_servos_lag():
+    """A position servo following a target that moves at constant speed lags it by kd/kp times
+    the speed; the target led by damping_lead times the speed is followed without lag."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string("""
+    <mujoco><option timestep="0.001" integrator="implicitfast" gravity="0 0 0"/>
+      <worldbody><body><joint name="j" axis="0 0 1" armature="0.05"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/></body></worldbody>
+      <actuator><position joint="j" kp="200" kv="30"/></actuator></mujoco>""")
+    lead = tracking.damping_lead(model)
+    np.testing.assert_allclose(lead, [30 / 200])
+    speed = 2.0
+    for feedforward, expected_lag in ((False, lead[0] * speed), (True, 0.0)):
+        data = mujoco.MjData(model)
+        for _ in range(3000):  # 3 s: the transient of this servo dies out in well under 1 s
+            data.ctrl[0] = speed * data.time + (lead[0] * speed if feedforward else 0.0)
+            mujoco.mj_step(model, data)
+        assert abs(speed * data.time - data.qpos[0] - expected_lag) < 2e-3

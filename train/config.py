@@ -34,6 +34,9 @@ class TrainConfig:
             where episodes recently failed; crisp_gym.envs.start_sampler).
         output: run directory (config, checkpoint, CSV log).
         scene_aware: train the scene-aware policy (points observation, PointNet tokens).
+        velocity_feedforward: PD targets lead the reference by the servos' kd/kp times its hinge
+            velocities, so fast moves are not lagged by the servos' damping (the env option of
+            the same name).
         frames: total environment steps (the paper does not state its budget).
         num_envs: parallel simulations (paper: 2048).
         steps_per_env: steps collected per simulation and iteration (horizon of the GAE
@@ -100,6 +103,7 @@ class TrainConfig:
     start_sampling: str = "uniform"
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/track")
     scene_aware: bool = False
+    velocity_feedforward: bool = False
     frames: int = 1_000_000_000
     num_envs: int = 2048
     steps_per_env: int = 32

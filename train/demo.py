@@ -84,7 +84,7 @@ def run_demo(args: DemoArgs) -> dict[str, Any]:
         policy = load_actor(policy_path)
         metrics, rollout = evaluate_policy(torch_policy(policy.actor, policy.scene_aware), args.clip,
                                            episodes=args.episodes, seed=args.seed, scene_aware=policy.scene_aware,
-                                           render=args.video)
+                                           render=args.video, velocity_feedforward=policy.velocity_feedforward)
         report = {"clip": args.clip, "controller": "policy", "policy": display_path(policy_path),
                   "actor": policy.model.actor, "training": policy_training_stats(policy_path), **metrics,
                   "comparison": {"pd_reference": baseline}}

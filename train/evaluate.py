@@ -85,13 +85,15 @@ class EvalArgs:
 
 def evaluate_policy(policy: Policy, clip: str | os.PathLike, *, episodes: int = 100, seed: int = 0,
                     scene_aware: bool = False, render: bool = False,
-                    progress: bool = True) -> tuple[dict[str, Any], Rollout]:
+                    progress: bool = True, **env_kwargs: Any) -> tuple[dict[str, Any], Rollout]:
     """Success from RSI starts and from frame 0, and the frame-0 rollout's metrics.
 
-    Returns the report entries and the frame-0 rollout (with its images when ``render``).
+    Returns the report entries and the frame-0 rollout (with its images when ``render``);
+    ``env_kwargs`` are further ``CrispTrack-v0`` options (as the policy was trained with).
     """
-    rsi = evaluate(policy, clip, episodes, scene_aware=scene_aware, seed=seed)
-    rollout = record_rollout(policy, clip, 0, render=render, scene_aware=scene_aware, progress=progress)
+    rsi = evaluate(policy, clip, episodes, scene_aware=scene_aware, seed=seed, **env_kwargs)
+    rollout = record_rollout(policy, clip, 0, render=render, scene_aware=scene_aware, progress=progress,
+                             **env_kwargs)
     report = {
         "rsi": {"episodes": episodes, "seed": seed, "success_rate": rsi.success_rate,
                 "mean_return": rsi.mean_return, "mean_length": float(rsi.lengths.mean()),
@@ -146,7 +148,8 @@ def run_eval(args: EvalArgs) -> dict[str, Any]:
     reports = {}
     for clip in clips:
         metrics, rollout = evaluate_policy(policy, clip, episodes=args.episodes, seed=args.seed,
-                                           scene_aware=cfg.scene_aware, render=args.video)
+                                           scene_aware=cfg.scene_aware, render=args.video,
+                                           velocity_feedforward=cfg.velocity_feedforward)
         name = Path(str(clip)).name
         reports[name] = {"policy": str(args.policy), "clip": str(clip), "scene_aware": cfg.scene_aware,
                          "actor": cfg.model.actor, "training": policy_training_stats(args.policy), **metrics}

@@ -108,7 +108,8 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
 
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
-                           clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling)
+                           clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling,
+                           velocity_feedforward=cfg.velocity_feedforward)
     return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 
@@ -352,7 +353,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         from crisp_gym.train.rollouts import LibraryEvaluation, torch_policy
 
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
-                                       num_threads=cfg.num_threads)
+                                       num_threads=cfg.num_threads, velocity_feedforward=cfg.velocity_feedforward)
     logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
                        kinds=cfg.loggers)
     history: list[dict[str, float]] = []

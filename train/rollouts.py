@@ -146,7 +146,7 @@ class LibraryEvaluation:
     """
 
     def __init__(self, clip: Any, episodes: int, *, scene_aware: bool = False, seed: int = 0,
-                 num_threads: int = 0):
+                 num_threads: int = 0, **env_kwargs: Any):
         from crisp_gym.envs.config import TrackConfig
         from crisp_gym.envs.start_sampler import StartSampler
         from crisp_gym.envs.track_vector import CrispTrackVectorEnv
@@ -163,7 +163,8 @@ class LibraryEvaluation:
         self.frames = drawn
         self.first_frame = np.zeros(len(self.clips), dtype=bool)
         self.first_frame[::per_clip] = True
-        self.env = CrispTrackVectorEnv(len(self.clips), clip=clip, scene_aware=scene_aware, num_threads=num_threads)
+        self.env = CrispTrackVectorEnv(len(self.clips), clip=clip, scene_aware=scene_aware, num_threads=num_threads,
+                                       **env_kwargs)
         self.scene_aware = scene_aware
 
     @torch.no_grad()

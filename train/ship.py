@@ -133,7 +133,8 @@ def ship(args: ShipArgs) -> dict:
     reports = {}
     for clip in clips:
         reports[Path(clip).name], _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), clip, episodes=args.episodes,
-                                           scene_aware=cfg.scene_aware)
+                                           scene_aware=cfg.scene_aware,
+                                           velocity_feedforward=cfg.velocity_feedforward)
     report = {"policy": policy.name, "actor": cfg.model.actor, "scene_aware": cfg.scene_aware,
               "training": policy_training_stats(policy), "clips": reports}
     write_json(report, args.output / "eval.json")

@@ -17,6 +17,12 @@ class TrackConfig:
         residual_actions: PD targets are the next reference pose plus ``action_scale`` × action
             (default); otherwise the action in [-1, 1] maps onto each hinge's range.
         action_scale: radians per unit action in residual mode.
+        velocity_feedforward: in residual mode, each PD target also leads the reference by
+            ``kd / kp`` times the reference's hinge velocity, so that the servo's damping acts on
+            the velocity error instead of on the velocity. Without the lead a servo lags a
+            moving reference by ``kd / kp`` seconds (0.1 s with the humanoid's gains): 1 rad at
+            10 rad/s, the whole residual range, which fast captured moves (kicks, arm throws)
+            exceed. The shipped policies were trained without it.
         num_future_frames: K, the reference frames in the ``targets`` observation.
         scene_aware: add the ``points`` observation (surface points of nearby primitives).
         num_points: N, points in the ``points`` observation.
@@ -54,6 +60,7 @@ class TrackConfig:
     control_hz: float = 30.0
     residual_actions: bool = True
     action_scale: float = 1.0
+    velocity_feedforward: bool = False
     num_future_frames: int = 5
     scene_aware: bool = False
     num_points: int = 128

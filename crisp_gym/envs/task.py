@@ -32,6 +32,7 @@ class TrackingTask:
         self.body_ids = self.library.body_ids
         self.reference = self.library.reference
         self.ranges = tracking.hinge_ranges()
+        self.damping_lead = tracking.damping_lead(self.model)
         if config.clip_weights is not None and len(config.clip_weights) != self.library.num_clips:
             raise ValueError(f"clip_weights has {len(config.clip_weights)} entries for "
                              f"{self.library.num_clips} clips {self.library.names}")
@@ -126,7 +127,7 @@ class TrackingTask:
         if action.shape[-1] != self.model.nu or not np.all(np.isfinite(action)):
             raise ValueError(f"actions must be finite with {self.model.nu} entries, got shape {action.shape}")
         rows = self.library.global_frames(clips, next_frames)
-        return tracking.pd_targets(action, self.reference, rows, self.config, self.ranges)
+        return tracking.pd_targets(action, self.reference, rows, self.config, self.ranges, self.damping_lead)
 
     def read_state(self, qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force) -> tracking.SimState:
         return tracking.sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, self.body_ids)

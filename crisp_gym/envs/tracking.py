@@ -278,12 +278,27 @@ def hinge_ranges() -> np.ndarray:
     return np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
 
 
+def damping_lead(model: mujoco.MjModel) -> np.ndarray:
+    """(nu,) ``kd / kp`` of each position actuator (s): how far its servo lags a target moving at
+    constant speed, since MuJoCo's position actuator damps the joint's velocity, not its error."""
+    return -model.actuator_biasprm[:, 2] / model.actuator_gainprm[:, 0]
+
+
 def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: TrackConfig,
-               ranges: np.ndarray) -> np.ndarray:
-    """(N, 69) PD targets: residual on the next reference pose, or absolute within the ranges."""
+               ranges: np.ndarray, lead: np.ndarray | None = None) -> np.ndarray:
+    """(N, 69) PD targets: residual on the next reference pose, or absolute within the ranges.
+
+    With ``cfg.velocity_feedforward`` the residual targets also lead the reference by ``lead``
+    (69,) seconds (:func:`damping_lead`) times its hinge velocities.
+    """
     action = np.clip(action, -1.0, 1.0)
     if cfg.residual_actions:
-        return ref.dof_pos[next_frame] + cfg.action_scale * action
+        targets = ref.dof_pos[next_frame] + cfg.action_scale * action
+        if cfg.velocity_feedforward:
+            if lead is None:
+                raise ValueError("velocity_feedforward needs the actuators' damping lead (damping_lead(model))")
+            targets += lead * ref.qvel[next_frame, 6:]
+        return targets
     mid, half = ranges.mean(axis=1), 0.5 * (ranges[:, 1] - ranges[:, 0])
     return mid + half * action
 

@@ -87,6 +87,11 @@ class LoadedPolicy:
     def normalize_obs(self) -> bool:
         return bool(self.config["normalize_obs"])
 
+    @property
+    def velocity_feedforward(self) -> bool:
+        """The env option the policy was trained with (files from before it existed: off)."""
+        return bool(self.config.get("velocity_feedforward", False))
+
 
 def model_config(config: dict[str, Any]) -> ModelConfig:
     """The :class:`ModelConfig` of a saved training config (JSON keeps tuples as lists)."""
