@@ -1,5 +1,6 @@
-"""Blind benchmark of the gap diagnosis: synthetic logs with a hidden effect (or none, or
-one outside the library) on the servo, Go2 and humanoid models, scored against the truth.
+"""Blind benchmark of the gap diagnosis: synthetic logs with a hidden effect (or two on
+different joints, none, or one outside the library) on the servo, Go2, humanoid and arm
+models, scored against the truth.
 
     python benchmarks/gap_bench.py --cases 42 --out gap_bench
 """
@@ -17,14 +18,16 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=42)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise", type=float, nargs="+", default=[1.0], help="encoder-noise multiples to sweep")
-    ap.add_argument("--models", nargs="+", default=["servo", "go2", "humanoid"])
+    ap.add_argument("--models", nargs="+", default=list(BenchConfig.models))
     ap.add_argument("--families", nargs="*", default=[], help="draw in-library effects of these families only")
     ap.add_argument("--p-none", type=float, default=0.12)
     ap.add_argument("--p-outside", type=float, default=0.12)
+    ap.add_argument("--p-compound", type=float, default=0.15, help="share of two-effect cases (multi-joint models)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()
     cfg = BenchConfig(cases=args.cases, seed=args.seed, noise_scales=tuple(args.noise), models=tuple(args.models),
-                      families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside)
+                      families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside,
+                      p_compound=args.p_compound)
     s = run_bench(cfg, args.out)
     print("| metric | value |\n|---|---|")
     for k, v in s.items():

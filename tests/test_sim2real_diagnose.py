@@ -52,10 +52,32 @@ def test_friction_value_and_interval():
     assert abs(res.selected["parameters"][0]["value"] - 0.08) < 0.008 and lo <= 0.08 <= hi
 
 
-def test_outside_effect_is_unexplained():
+def test_outside_effect_is_unexplained(tmp_path):
     sc, train, test = _case({"family": "outside", "kind": "command_filter", "tau": 0.05}, seed=3)
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
     assert res.verdict == "unexplained"
+    assert res.residual["joints"][0]["joint"] == sc.joints[0]
+    assert sum(b["share_of_power"] for b in res.residual["bands"]) == pytest.approx(1.0)
+    text = (write_report(res, tmp_path / "rep", plots=False) / "report.md").read_text()
+    assert "not a cause" in text and "What remains" in text
+
+
+def test_residual_structure_finds_the_joint_and_band_of_a_known_residual():
+    from crisp_gym.sim2real.gap import residual_structure
+
+    sc = scenario("go2", BenchConfig())
+    t, u = commands(sc, np.random.default_rng(0))
+    tr = bind(synthesize(sc, {"family": "none"}, t, u, 0.0, np.random.default_rng(0)), sc.model, validate=False)
+    rep = Replayer([tr], make_windows([tr], 0.5), 1)
+    steps = np.arange(1, rep.windows.size) * tr.log.dt
+    r = np.zeros((len(rep.windows), len(steps), len(sc.joints)))
+    r[..., 4] = 0.01 * np.sin(2 * np.pi * 12.0 * steps)[None]  # 12 Hz on one joint
+    r[..., 7] = 0.002 * np.sin(2 * np.pi * 12.0 * steps)[None]  # a little on another, below 10 % of the excess
+    r *= rep.mask[..., None]
+    out = residual_structure(rep, r, np.full(len(sc.joints), 1e-4))
+    assert [j["joint"] for j in out["joints"]] == [sc.joints[4]]
+    band = {b["from_hz"]: b["share_of_power"] for b in out["bands"]}
+    assert band[8.0] > 0.9
 
 
 @pytest.mark.parametrize("kind, x", [(fx.GainScale, 0.6), (fx.MassScale, 1.8), (fx.EncoderBias, 0.05)])
@@ -253,3 +275,101 @@ def test_a_delay_on_one_drive_is_found_on_that_drive():
     assert res.verdict == "explained" and res.selected["effect"] == "actuator_delay[L_Hip_y]"
     (delay,) = res.selected["parameters"]
     assert delay["ci95"][0] <= 0.04 <= delay["ci95"][1] and abs(delay["value"] - 0.04) < 0.01
+
+
+def test_two_effects_together_are_found_with_their_shares():
+    """Delay and Coulomb friction together: fitted alone, each soaks up part of the other
+    (and load friction imitates both); forward selection fits the friction on top of the delay."""
+    delay = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.03]}
+    coulomb = {"family": "coulomb_friction", "effect": "coulomb_friction", "joint": None, "x": [0.08]}
+    sc, train, test = _case({"family": "compound", "parts": [delay, coulomb]}, seed=4)
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res.verdict == "explained"
+    assert res.selected["family"] == "coulomb_friction+delay"
+    values = {p["name"]: p["value"] for p in res.selected["parameters"]}
+    assert abs(values["delay"] - 0.03) < 0.005 and abs(values["added"] - 0.08) < 0.015
+    shares = {s["effect"].split("[")[0]: s["share"] for s in res.selected["shares"]}
+    assert set(shares) == {"actuator_delay", "coulomb_friction"}
+    assert sum(shares.values()) == pytest.approx(1.0) and min(shares.values()) > 0.1
+
+
+def test_a_point_mass_added_to_a_body_moves_it_as_a_welded_body_would():
+    """add_point_mass against MuJoCo's own composition: the same mass as a separate body welded
+    to the link gives the same accelerations (after the model's constants are recomputed)."""
+    xml = """<mujoco><worldbody><body name="a"><joint axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" mass="0.5"/>
+      <body name="b" pos="0.3 0 0" quat="0.9 0.1 0.3 0.2"><joint axis="1 0 0"/>
+        <geom type="box" size="0.05 0.02 0.03" pos="0.04 0.01 0" mass="0.3"/>{}</body></body></worldbody></mujoco>"""
+    point, mass = np.array([0.07, -0.03, 0.05]), 0.4
+    welded = mujoco.MjModel.from_xml_string(xml.format(
+        f'<body pos="{point[0]} {point[1]} {point[2]}"><inertial pos="0 0 0" mass="{mass}" diaginertia="1e-9 1e-9 1e-9"/>'
+        "</body>"))
+    added = mujoco.MjModel.from_xml_string(xml.format(""))
+    fx.add_point_mass(added, added.body("b").id, mass, point)
+    mujoco.mj_setConst(added, mujoco.MjData(added))
+    qacc = []
+    for model in (welded, added):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = [0.4, -0.7], [1.0, 2.0]
+        mujoco.mj_forward(model, data)
+        qacc.append(data.qacc.copy())
+    np.testing.assert_allclose(qacc[1], qacc[0], rtol=1e-5)
+
+
+def test_a_com_shift_moves_a_body_compiled_with_its_com_at_its_origin():
+    xml = """<mujoco><worldbody><body><joint axis="0 1 0"/><geom type="sphere" size="0.05" mass="1"{}/></body>
+      </worldbody></mujoco>"""
+    shifted = mujoco.MjModel.from_xml_string(xml.format(' pos="0.1 0 0"'))
+    edited = mujoco.MjModel.from_xml_string(xml.format(""))
+    fx.release_inertial_frame(edited, 1)
+    edited.body_ipos[1] = [0.1, 0.0, 0.0]
+    mujoco.mj_setConst(edited, mujoco.MjData(edited))
+    qacc = []
+    for model in (shifted, edited):
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        qacc.append(data.qacc[0])
+    assert qacc[0] != 0.0 and qacc[1] == pytest.approx(qacc[0], rel=1e-9)
+
+
+def test_a_payload_at_the_foot_is_found_with_its_mass():
+    sc = scenario("go2", BenchConfig())
+    rng = np.random.default_rng(9)
+    t, u1 = commands(sc, rng)
+    _, u2 = commands(sc, rng)
+    truth = {"family": "mass", "effect": "payload", "joint": "FL_calf_joint", "x": [0.4, 0.02, 0.0, -0.18]}
+    train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
+    res = diagnose([(train, sc.model)], [(test, sc.model)], replace(CFG, families=("mass",)))
+    assert res.verdict == "explained" and res.selected["effect"] == "payload[FL_calf_joint]"
+    assert abs(_selected_value(res, "mass") - 0.4) < 0.08
+
+
+def test_bench_draws_two_effects_on_two_joints():
+    from crisp_gym.sim2real.bench import draw_truth, nominal_run
+
+    cfg = BenchConfig(p_none=0.0, p_outside=0.0, p_compound=1.0)
+    sc = scenario("arm", cfg)
+    t, u = commands(sc, np.random.default_rng(0))
+    tr = nominal_run(sc, t, u)
+    for seed in range(6):
+        truth = draw_truth(sc, tr, np.random.default_rng(seed), cfg)
+        first, second = truth["parts"]
+        assert first["joint"] != second["joint"] and first["family"] != second["family"]
+        assert truth["family"] == "+".join(sorted((first["family"], second["family"])))
+        assert {first["joint"], second["joint"]} <= set(sc.joints)
+
+
+@pytest.mark.slow
+def test_different_effects_on_different_joints_are_found_together():
+    """Damping on one joint of the Go2 and armature on another: no single family explains
+    both; the per-joint mixture (or forward selection) does."""
+    sc = scenario("go2", BenchConfig())
+    rng = np.random.default_rng(11)
+    t, u1 = commands(sc, rng)
+    _, u2 = commands(sc, rng)
+    parts = [{"family": "viscous_damping", "effect": "viscous_damping", "joint": "FL_thigh_joint", "x": [0.6]},
+             {"family": "armature", "effect": "armature", "joint": "RR_calf_joint", "x": [0.02]}]
+    truth = {"family": "armature+viscous_damping", "parts": parts}
+    train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res.verdict == "explained" and res.selected["family"] == "armature+viscous_damping"

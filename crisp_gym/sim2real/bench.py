@@ -1,9 +1,11 @@
 """Blind benchmark: "real" logs generated with a hidden effect, diagnosed without it.
 
-Each case draws a model (servo pendulum, fixed-base Go2, humanoid with feet on a floor),
-a hidden effect (one of the library's families, "none", or one *outside* the library:
-a spring the model lacks, or a first-order filter on the commands), its parameter and,
-on multi-joint models, the joint it acts on. A training and a held-out log are simulated
+Each case draws a model (servo pendulum, fixed-base Go2, humanoid with feet on a floor, a
+6-DoF arm whose drives span two orders of magnitude, a two-joint leg on a rail that stands,
+squats and stamps), a hidden effect (one of the library's
+families, two of them on different joints, "none", or one *outside* the library: a spring
+the model lacks, or a first-order filter on the commands), its parameters and, on
+multi-joint models, the joint it acts on. A training and a held-out log are simulated
 from two different random command sequences, passed through the sensor (the effect's
 measurement side, encoder quantisation and noise), and only the logs and the nominal
 model reach :func:`diagnose`. The truth is written to ``truth/`` and read back only to
@@ -34,12 +36,17 @@ from crisp_gym.sim2real.diagnose import DiagnoseConfig, Diagnosis, diagnose
 from crisp_gym.sim2real.fit import Combo, gap_rms, residuals
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import (
+    ARM_JOINTS,
     GO2_JOINTS,
+    RAIL_LEG_ACTUATORS,
+    RAIL_LEG_JOINTS,
     HUMANOID_BENCH_JOINTS,
     SERVO_ACTUATOR,
     SERVO_JOINT,
     ServoConfig,
+    build_arm,
     build_humanoid_bench,
+    build_rail_leg,
     build_servo_pendulum,
     load_go2_fixed_base,
 )
@@ -60,6 +67,8 @@ class BenchConfig:
         models: which bundled models to use.
         p_none: share of cases without any effect.
         p_outside: share of cases with an effect outside the library.
+        p_compound: share of cases on multi-joint models with two in-library effects of
+            different families on two different joints.
         go2_xml: the Go2 MJCF.
         families: draw in-library effects of these families only (empty: all).
     """
@@ -67,9 +76,10 @@ class BenchConfig:
     cases: int = 42
     seed: int = 0
     noise_scales: tuple[float, ...] = (1.0,)
-    models: tuple[str, ...] = ("servo", "go2", "humanoid")
+    models: tuple[str, ...] = ("servo", "go2", "humanoid", "arm", "rail_leg")
     p_none: float = 0.12
     p_outside: float = 0.12
+    p_compound: float = 0.15
     go2_xml: Path = GO2_XML
     families: tuple[str, ...] = ()
 
@@ -79,9 +89,9 @@ class BenchConfig:
 
 @dataclass(frozen=True)
 class Scenario:
-    """A model and how to command it: rate, duration, joints, base posture, amplitude,
-    encoder quantum and noise, and the noise of logged velocities (None: the log has
-    none, as in the real servo and Go2 logs)."""
+    """A model and how to command it: rate, duration, logged joints, actuators, base command
+    and amplitude (per actuator), encoder quantum and noise, and the noise of logged
+    velocities (None: the log has none, as in the real servo and Go2 logs)."""
 
     name: str
     model: mujoco.MjModel
@@ -115,14 +125,36 @@ def scenario(name: str, cfg: BenchConfig) -> Scenario:
         # differentiated at 1 kHz and low-passed by the drive (about 0.02 rad/s of noise).
         return Scenario(name, model, HUMANOID_BENCH_JOINTS, HUMANOID_BENCH_JOINTS, 120.0, 4.0, base, amplitude,
                         2 * np.pi / 32768, 2e-4, 0.02)
-    raise ValueError(f"unknown bench model {name!r}; expected servo, go2 or humanoid")
+    if name == "arm":
+        # a 14-bit encoder, as on many arm joints' motor side divided down (here: at the joint)
+        return Scenario(name, build_arm(), ARM_JOINTS, ARM_JOINTS, 200.0, 5.0, np.array([0.0, 0.6, -1.2, 0.0, 0.6, 0.0]),
+                        np.array([0.6, 0.3, 0.4, 0.8, 0.5, 1.0]), 2 * np.pi / 16384, 2e-4)
+    if name == "rail_leg":
+        # the hip sways the foot fore and aft, the knee bends it from stance (trunk carried) to a
+        # crouch deep enough that the trunk rests on its stop and the foot swings
+        return Scenario(name, build_rail_leg(), RAIL_LEG_JOINTS, RAIL_LEG_ACTUATORS, 200.0, 5.0, np.array([0.6, -1.3]),
+                        np.array([0.35, 0.8]), 2 * np.pi / 16384, 2e-4)
+    raise ValueError(f"unknown bench model {name!r}; expected servo, go2, humanoid, arm or rail_leg")
+
+
+def _actuator_of(sc: Scenario, joint: str) -> int:
+    """The command column of the actuator that drives ``joint``."""
+    m = sc.model
+    return next(a for a, name in enumerate(sc.actuators) if m.joint(int(m.actuator(name).trnid[0])).name == joint)
+
+
+def driven_joints(sc: Scenario) -> tuple[str, ...]:
+    """The logged joints an actuator drives (effects are drawn on these)."""
+    m = sc.model
+    driven = {m.joint(int(m.actuator(a).trnid[0])).name for a in sc.actuators}
+    return tuple(j for j in sc.joints if j in driven)
 
 
 def commands(sc: Scenario, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Smooth random commands around the base posture: a few sinusoids per joint plus
     held steps, so that the log has reversals, rests, fast and slow parts."""
     t = np.arange(int(sc.duration * sc.rate)) / sc.rate
-    n = len(sc.joints)
+    n = len(sc.actuators)
     u = np.tile(sc.base, (len(t), 1))
     for j in range(n):
         for _ in range(3):
@@ -134,7 +166,13 @@ def commands(sc: Scenario, rng: np.random.Generator) -> tuple[np.ndarray, np.nda
 
 
 def _template(sc: Scenario, t: np.ndarray, u: np.ndarray) -> Trajectory:
-    qpos = np.tile(u[0], (len(t), 1))
+    """A log of commands ``u`` whose every sample is the start state: the driven joints at
+    their first command, the others (a rail) at the model's rest position."""
+    m = sc.model
+    start = np.array([m.qpos0[m.jnt_qposadr[m.joint(j).id]] for j in sc.joints])
+    for a, name in enumerate(sc.actuators):
+        start[sc.joints.index(m.joint(int(m.actuator(name).trnid[0])).name)] = u[0, a]
+    qpos = np.tile(start, (len(t), 1))
     log = RealLog(time=t, qpos=qpos, ctrl=u, joint_names=sc.joints, actuator_names=sc.actuators)
     return bind(log, sc.model, validate=False)
 
@@ -154,14 +192,29 @@ def draw_truth(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Benc
     roll = rng.uniform()
     if roll < cfg.p_none:
         return {"family": "none"}
-    joint = None if len(sc.joints) == 1 else sc.joints[int(rng.integers(len(sc.joints)))]
+    driven = driven_joints(sc)
+    joint = None if len(sc.joints) == 1 else driven[int(rng.integers(len(driven)))]
     if roll < cfg.p_none + cfg.p_outside:
         kind = OUTSIDE[int(rng.integers(len(OUTSIDE)))]
         if kind == "missing_spring":
             return {"family": "outside", "kind": kind, "joint": joint or sc.joints[0],
                     "stiffness": float(rng.uniform(0.3, 0.6)), "offset": float(rng.uniform(0.3, 0.6))}
         return {"family": "outside", "kind": kind, "tau": float(rng.uniform(0.03, 0.06))}
-    kinds = [k for k in fx.EFFECT_TYPES if k().applicable(tr) and (not cfg.families or k.family in cfg.families)]
+    if len(driven) > 1 and roll < cfg.p_none + cfg.p_outside + cfg.p_compound:
+        first, second = rng.choice(len(driven), 2, replace=False)
+        part = _draw_effect(sc, tr, rng, cfg, driven[first], local_only=True)
+        other = _draw_effect(sc, tr, rng, cfg, driven[second], local_only=True, exclude=part["family"])
+        parts = [part, other]
+        return {"family": "+".join(sorted({q["family"] for q in parts})), "effect": "compound", "parts": parts}
+    return _draw_effect(sc, tr, rng, cfg, joint)
+
+
+def _draw_effect(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: BenchConfig, joint: str | None,
+                 local_only: bool = False, exclude: str | None = None) -> dict:
+    """One in-library effect on ``joint`` where it can be confined to one (``local_only``:
+    only such effects), of a family other than ``exclude``."""
+    kinds = [k for k in fx.EFFECT_TYPES if k().applicable(tr) and (not cfg.families or k.family in cfg.families)
+             and k.family != exclude and (not local_only or k.per_joint_allowed or k.focus_allowed)]
     if not kinds:
         raise ValueError(f"no effect of families {cfg.families} applies to the {sc.name} model")
     kind = kinds[int(rng.integers(len(kinds)))]
@@ -185,6 +238,7 @@ def draw_truth(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Benc
         "encoder_bias": lambda: [rng.choice([-1, 1]) * rng.uniform(0.03, 0.08)],
         "mass_scale": lambda: [rng.choice([rng.uniform(0.4, 0.6), rng.uniform(1.6, 2.2)])],
         "com_shift": lambda: list(rng.choice([-1, 1], 2) * rng.uniform(0.15, 0.4, 2) * lever),
+        "payload": lambda: _draw_payload(effect, tr, rng),
         # The BAM study's XL330 fit has load coefficients 0.14 (backdriven) and 0.28 (driven).
         "load_friction": lambda: [rng.uniform(0.15, 0.4)],
         "stribeck_friction": lambda: [rng.uniform(0.15, 0.4) * ts, rng.uniform(0.1, 0.3) * vs],
@@ -197,6 +251,16 @@ def draw_truth(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Benc
     x = [float(v) for v in draws[kind.name]()]
     return {"family": kind.family, "effect": kind.name, "joint": joint if local else None, "x": x,
             "x0": [p.x0 for p in effect.params(tr)]}
+
+
+def _draw_payload(effect: fx.Payload, tr: Trajectory, rng: np.random.Generator) -> list[float]:
+    """A load of 30-100 % of the mass the joint moves, 0.5-1.5 reaches from the tool's centre of
+    mass in a random direction (along the joint's own axis too)."""
+    mass, reach = effect._scales(tr)
+    direction = rng.normal(size=3)
+    offset = tr.model.body_ipos[effect._tool(tr.model, tr)] + direction / np.linalg.norm(direction) * reach \
+        * rng.uniform(0.5, 1.5)
+    return [rng.uniform(0.3, 1.0) * mass, *offset]
 
 
 def _draw_support(tr: Trajectory, rng: np.random.Generator) -> list[float]:
@@ -227,15 +291,17 @@ def synthesize(sc: Scenario, truth: dict, t: np.ndarray, u: np.ndarray, noise: f
         combo, x = Combo((), tr), np.zeros(0)
     elif truth["family"] == "outside":
         combo, x = Combo((), tr), np.zeros(0)
-    else:
-        combo, x = Combo((_effect_of(truth),), tr), np.array(truth["x"])
+    else:  # one effect, or several ("parts") acting together
+        parts = truth.get("parts", [truth])
+        combo = Combo(tuple(_effect_of(part) for part in parts), tr)
+        x = np.concatenate([part["x"] for part in parts])
     inputs = combo.inputs(x, [tr])
     if truth.get("kind") == "missing_spring":
         model = inputs.models[0].__copy__()
         jid = model.joint(truth["joint"]).id
         ts = fx.torque_scale(tr)[sc.joints.index(truth["joint"])]
         model.jnt_stiffness[jid] = truth["stiffness"] * ts / 0.1
-        model.qpos_spring[model.jnt_qposadr[jid]] = u[:, sc.joints.index(truth["joint"])].mean() + truth["offset"]
+        model.qpos_spring[model.jnt_qposadr[jid]] = u[:, _actuator_of(sc, truth["joint"])].mean() + truth["offset"]
         inputs.models[0] = model
     elif truth.get("kind") == "command_filter":
         h = sc.model.opt.timestep if tr.nsub == 1 else (t[1] - t[0]) / tr.nsub

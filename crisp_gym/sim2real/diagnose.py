@@ -1,8 +1,11 @@
 """The diagnosis: where the gap lies, which effect explains it, how far it shrinks.
 
-Every candidate effect (and the best pairs) is fitted on training windows and ranked by
-the gap it leaves on held-out windows (other logs, or the last part of each log), with a
-penalty per parameter so that a richer model must earn its keep. The verdict compares
+Every candidate effect is fitted on training windows and ranked by the gap it leaves on
+held-out windows (other logs, or the last part of each log), with a penalty per parameter so
+that a richer model must earn its keep. Two effects together come from forward selection
+(the best effect held at its fit, every other one fitted on top of it and judged on the
+held-out windows, the best of those pairs then fitted jointly), and on multi-joint logs from
+a per-joint mixture (each joint's best per-joint family, confined to those joints). The verdict compares
 gaps with the *noise floor*: the gap this same pipeline measures on a log that the model
 itself produced, with the log's own measurement noise. A log whose gap is at the floor
 gets "none"; a gap that no effect brings near the floor is "unexplained".
@@ -20,8 +23,8 @@ from scipy import stats
 from tqdm import tqdm
 
 from crisp_gym.sim2real.effects import CannotApply, Effect, Param, check_families, library
-from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
-from crisp_gym.sim2real.gap import where
+from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals
+from crisp_gym.sim2real.gap import residual_structure, where
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, nominal_inputs
 
@@ -34,7 +37,11 @@ class DiagnoseConfig:
         window_s: replay window length (s); long enough to see the dynamics (a few PD
             time constants), short enough that errors do not compound.
         holdout_fraction: without held-out logs, the last fraction of every log is held out.
-        pairs: how many of the best single effects are also fitted pairwise.
+        bases: forward selection holds each of this many best single effects (of distinct
+            families) and screens every other effect on top of it.
+        pairs: forward selection fits this many of the best screened pairs jointly.
+        screen_iter: Levenberg-Marquardt iterations of each screening fit (an effect fitted
+            on top of the best one held fixed, from its own single fit).
         penalty: per extra parameter, the relative increase of the squared held-out gap a
             candidate is charged in the ranking.
         none_factor: a held-out gap below none_factor x the noise floor means "none".
@@ -56,7 +63,9 @@ class DiagnoseConfig:
 
     window_s: float = 0.5
     holdout_fraction: float = 0.3
+    bases: int = 2
     pairs: int = 3
+    screen_iter: int = 3
     penalty: float = 0.02
     none_factor: float = 1.5
     explained_factor: float = 1.6
@@ -198,6 +207,7 @@ class Diagnosis:
     selected: dict[str, Any] | None
     closest: dict[str, Any] | None
     gap_after_heldout: float
+    residual: dict[str, Any] | None
     shrink: float
     shrink_above_floor: float
     rollouts: int
@@ -247,9 +257,11 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         except CannotApply as err:  # one candidate that cannot act on this log ends nothing else
             skipped.append({"effect": effect.label, "reason": str(err)})
     _evaluate(rep_test, candidates)
-    pair_cands = _pairs(candidates, cfg.pairs, tr_train[0], fitter, cfg)
-    _evaluate(rep_test, pair_cands)
-    candidates += pair_cands
+    combined = _forward_pairs(candidates, tr_train[0], fitter, rep_test, cfg, floor_j, focus)
+    mixture = _per_joint_mixture(candidates, tr_train[0], fitter) if len(names) > 1 else None
+    combined += [mixture] if mixture is not None else []
+    _evaluate(rep_test, combined)
+    candidates += combined
     for c in candidates:
         c.score = c.heldout_gap**2 * (1 + cfg.penalty * c.nparam)
     ranked = sorted(candidates, key=lambda c: c.score)
@@ -283,6 +295,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         "margin_over_runner_up": (None if runner is None else float(runner.score / chosen.score - 1.0)),
         "runner_up": None if runner is None else runner.combo.label,
         "per_joint_gap_after": {n: float(g) for n, g in zip(names, per_joint_after)},
+        "shares": part_shares(chosen, rep_test),
     }
     gap_after = chosen.heldout_gap if selected is not None else gap_before
     excess0 = gap_before**2 - floor**2
@@ -305,6 +318,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         selected=summary if selected is not None else None,
         closest=summary if selected is None else None,
         gap_after_heldout=gap_after,
+        residual=residual_structure(rep_test, r_after, floor_j) if verdict == "unexplained" else None,
         shrink=1.0 - gap_after / gap_before if gap_before > 0 else 0.0,
         shrink_above_floor=(float(1 - max(gap_after**2 - floor**2, 0) / excess0) if excess0 > 0 else 0.0),
         rollouts=fitter.rollouts,
@@ -347,20 +361,92 @@ def _evaluate(rep: Replayer, cands: list[Candidate]) -> None:
             c.heldout_per_joint = np.sqrt(np.sum(rc**2, axis=(0, 1)) / rep.mask.sum())
 
 
-def _pairs(cands: list[Candidate], k: int, ref: Trajectory, fitter: Fitter, cfg: DiagnoseConfig) -> list[Candidate]:
-    """Fit the pairs among the ``k`` best single effects of distinct families."""
-    best: list[Candidate] = []
-    for c in sorted(cands, key=lambda c: c.heldout_gap):
-        if all(c.combo.family != b.combo.family for b in best):
-            best.append(c)
-        if len(best) == 3:
-            break
+def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
+                   cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
+    """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
+    gap, distinct families) is held at its fit, and every single effect of another family is
+    fitted on top of it for a few iterations, from its own single fit (the screen: as cheap as
+    one single fit, and the second effect no longer has to soak up the first, as it does when
+    fitted alone); so are the library's effects confined to the joint the held effect leaves
+    worst, when that is not the joint the singles were confined to (a second effect on another
+    joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out gaps are then
+    fitted jointly. More than one base, because an effect fitted alone may stand in for a
+    relative of the true one (a sensor delay for an actuator delay beside friction)."""
+    bases: list[Candidate] = []
+    for c in sorted(singles, key=lambda c: c.heldout_gap):
+        if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
+            bases.append(c)
+    names = ref.log.joint_names
+    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0)
+    pairs: list[tuple[Candidate, Effect]] = []
+    screened: list[Candidate] = []
+    seen: set[frozenset[str]] = set()
+    for base in bases:
+        held = Frozen(base.combo.effects[0], base.x)
+        partners: list[tuple[Effect, list[np.ndarray] | None]] = [(c.combo.effects[0], [c.x]) for c in singles]
+        worst = names[int(np.argmax(base.heldout_per_joint**2 - floor_j**2))] if len(names) > 1 else focus
+        if worst != focus:
+            partners += [(e, None) for e in library(ref, focus=worst, families=cfg.families or None)
+                         if e.joints == (worst,) and not e.per_joint]
+        for effect, start in partners:
+            key = frozenset((base.combo.label, effect.label))
+            if effect.family == base.combo.family or key in seen:
+                continue
+            seen.add(key)
+            combo = Combo((held, effect), ref)
+            try:
+                res = screen.fit(combo, start)
+            except CannotApply:
+                continue
+            pairs.append((base, effect))
+            screened.append(Candidate(combo, res.x, res.train_gap))
+    fitter.rollouts += screen.rollouts
+    _evaluate(rep_test, screened)
     out = []
-    pairs = [(a, b) for i, a in enumerate(best) for b in best[i + 1:]][:k]
-    for a, b in tqdm(pairs, desc="fit pairs", disable=not cfg.show_progress, leave=False):
-        combo = Combo(a.combo.effects + b.combo.effects, ref)
-        out.append(_fit(fitter, combo, [np.concatenate([a.x, b.x])]))
+    for k in np.argsort([c.heldout_gap for c in screened])[:cfg.pairs]:
+        base, effect = pairs[k]
+        combo = Combo(base.combo.effects + (effect,), ref)
+        out.append(_fit(fitter, combo, [np.concatenate([base.x, screened[k].x])]))
     return out
+
+
+def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter) -> Candidate | None:
+    """Per joint, the per-joint effect that leaves that joint's held-out gap smallest; those
+    effects confined to their joints and fitted together, from their single fits (one
+    parameter per joint, so the fit keeps its one-rollout diagonal Jacobian). ``None`` when one
+    family wins every joint (the per-joint effect itself is already a candidate)."""
+    names = ref.log.joint_names
+    per_joint = [c for c in singles if len(c.combo.effects) == 1 and c.combo.effects[0].per_joint
+                 and c.combo.effects[0].joints is None and c.nparam == len(names)]
+    if len(per_joint) < 2:
+        return None
+    choice = np.argmin([c.heldout_per_joint for c in per_joint], axis=0)
+    if len(set(choice.tolist())) < 2:
+        return None
+    effects, start = [], []
+    for f in sorted(set(choice.tolist())):
+        cols = np.flatnonzero(choice == f)
+        effects.append(type(per_joint[f].combo.effects[0])(joints=tuple(names[c] for c in cols), per_joint=True))
+        start.append(per_joint[f].x[cols])
+    return _fit(fitter, Combo(tuple(effects), ref), [np.concatenate(start)])
+
+
+def part_shares(candidate: Candidate, rep: Replayer) -> list[dict[str, Any]]:
+    """Each part of a combined candidate, with its share of what the combination removes from the
+    squared held-out gap: the gap comes back by ``gap_without² - gap²`` when that part alone is
+    left out (the others held at their fit); shares are those rises, normalised."""
+    effects, parts = candidate.combo.effects, candidate.combo.split(candidate.x)
+    if len(effects) < 2:
+        return []
+    ref = rep.trajs[0]
+    combos = [Combo(tuple(Frozen(e, xe) for j, (e, xe) in enumerate(zip(effects, parts)) if j != i), ref)
+              for i in range(len(effects))]
+    r = residuals(rep, [c.inputs(np.zeros(0), rep.trajs) for c in combos])
+    without = [gap_rms(ri, rep.mask) for ri in r]
+    rise = np.maximum(np.array(without) ** 2 - candidate.heldout_gap**2, 0.0)
+    shares = rise / rise.sum() if rise.sum() > 0 else np.full(len(rise), 1.0 / len(rise))
+    return [{"effect": e.label, "share": float(sh), "gap_without": float(g)}
+            for e, sh, g in zip(effects, shares, without)]
 
 
 def _parsimonious_first(ranked: list[Candidate], floor: float, tolerance: float) -> list[Candidate]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import partial
 
+import mujoco
 import numpy as np
 
 from crisp_gym.sim2real.effects import Effect, Param, Signals
@@ -60,6 +61,10 @@ class Combo:
                 model = model.__copy__()
                 for e, xe in zip(self.effects, parts):
                     e.edit_model(model, xe, tr)
+                if any(e.changes_inertia for e in self.effects):
+                    # body_subtreemass and the other derived constants the dynamics read
+                    # (a heavier link with a stale subtree mass gets a wrong mass matrix)
+                    mujoco.mj_setConst(model, mujoco.MjData(model))
             sig = Signals(tr.ctrl, tr.log.qpos, tr.qvel)
             for e, xe in zip(self.effects, parts):
                 sig = e.edit_signals(sig, xe, tr)
@@ -70,6 +75,40 @@ class Combo:
             items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_friction]
             friction.append(partial(_state_friction, items, tr, model, sig.ctrl) if items else None)
         return SimInputs(models, ctrl, qpos, qvel, friction)
+
+
+class Frozen(Effect):
+    """An effect held at fitted parameters ``x``: it acts as ``effect`` does but has no parameters,
+    so that forward selection can fit the next effect on top of it at the cost of a single fit."""
+
+    def __init__(self, effect: Effect, x: np.ndarray) -> None:
+        super().__init__(effect.joints, per_joint=False)
+        self.effect, self.x = effect, np.asarray(x, dtype=float)
+        self.name, self.family = effect.name, effect.family
+        self.touches_model, self.state_friction = effect.touches_model, effect.state_friction
+        self.changes_inertia = effect.changes_inertia
+
+    @property
+    def label(self) -> str:
+        return self.effect.label
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return []
+
+    def edit_model(self, model, x: np.ndarray, tr: Trajectory) -> None:
+        self.effect.edit_model(model, self.x, tr)
+
+    def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
+        return self.effect.edit_signals(sig, self.x, tr)
+
+    def measure(self, qpos: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
+        return self.effect.measure(qpos, self.x, tr)
+
+    def measure_velocity(self, qvel: np.ndarray, x: np.ndarray, tr: Trajectory) -> np.ndarray:
+        return self.effect.measure_velocity(qvel, self.x, tr)
+
+    def friction(self, x, tr, model, ctrl, enabled, qpos, qvel) -> np.ndarray:
+        return self.effect.friction(self.x, tr, model, ctrl, enabled, qpos, qvel)
 
 
 def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, model, ctrl: np.ndarray,
@@ -120,10 +159,13 @@ class Fitter:
         return np.sum(r.reshape(r.shape[0], -1) ** 2, axis=1)
 
     def _columns(self, combo: Combo) -> np.ndarray | None:
-        """For a single per-joint effect, the residual column each parameter acts on."""
-        if len(combo.effects) == 1 and combo.effects[0].per_joint:
-            return combo.effects[0].columns(combo.ref)
-        return None
+        """When every effect with parameters has one per joint, on joints of its own, the
+        residual column each parameter acts on (held effects, :class:`Frozen`, have none)."""
+        fitted = [e for e, n in zip(combo.effects, combo.sizes) if n]
+        if not fitted or not all(e.per_joint for e in fitted):
+            return None
+        cols = np.concatenate([e.columns(combo.ref) for e in fitted])
+        return cols if len(cols) == len(combo.params) and len(np.unique(cols)) == len(cols) else None
 
     def fit(self, combo: Combo, starts: list[np.ndarray] | None = None) -> FitResult:
         params = combo.params

@@ -113,6 +113,69 @@ def frequency_response(u: np.ndarray, q: np.ndarray, dt: float, bands: np.ndarra
     return out
 
 
+def regime_breakdown(rep: Replayer, r: np.ndarray) -> dict[str, dict]:
+    """The residual ``r`` (nwin, size-1, n) of ``rep``'s windows by motion regime
+    (:func:`regime_masks`): RMS, share of samples and ratio to the overall RMS, overall and
+    per joint."""
+    w, mask = rep.windows, rep.mask
+    names = rep.trajs[0].log.joint_names
+    n = len(names)
+    overall = max(float(np.sqrt(np.sum(r**2) / (mask.sum() * n))), 1e-12)
+    regime_sum = {k: np.zeros(n) for k in REGIMES}
+    regime_cnt = {k: np.zeros(n) for k in REGIMES}
+    for ti, tr in enumerate(rep.trajs):
+        sel = np.flatnonzero(w.traj == ti)
+        if not len(sel):
+            continue
+        idx = np.minimum(w.start[sel][:, None] + np.arange(1, w.size)[None], len(tr.log.time) - 1)
+        inside = mask[sel][..., None]
+        for key, m in regime_masks(tr).items():
+            hit = m[idx] & inside
+            regime_sum[key] += np.sum(r[sel] ** 2 * hit, axis=(0, 1))
+            regime_cnt[key] += hit.sum(axis=(0, 1))
+    regimes = {}
+    for key in REGIMES:
+        if regime_cnt[key].sum() == 0:
+            continue
+        total = float(np.sqrt(regime_sum[key].sum() / regime_cnt[key].sum()))
+        regimes[key] = {"rms": total, "share_of_samples": float(regime_cnt[key].sum() / (mask.sum() * n)),
+                        "ratio_to_overall": total / overall,
+                        "per_joint": {names[j]: (float(np.sqrt(regime_sum[key][j] / regime_cnt[key][j]))
+                                                 if regime_cnt[key][j] else None) for j in range(n)}}
+    return regimes
+
+
+BANDS_HZ = (0.0, 2.0, 8.0, 20.0)
+"""Lower edges of the frequency bands :func:`residual_structure` splits a residual into."""
+
+
+def residual_structure(rep: Replayer, r: np.ndarray, floor: np.ndarray) -> dict:
+    """What a residual ``r`` (nwin, size-1, n) still looks like, for a gap no candidate
+    explains: the joints holding its excess over the noise ``floor`` (n,), how its power
+    splits over frequency bands (:data:`BANDS_HZ`; windows start from the logged state, so the
+    lowest band is drift within a window), and the motion regimes where it is strongest."""
+    names = rep.trajs[0].log.joint_names
+    mask = rep.mask
+    rms = np.sqrt(np.sum(r**2, axis=(0, 1)) / mask.sum())
+    excess = np.maximum(rms**2 - floor**2, 0.0)
+    shares = excess / excess.sum() if excess.sum() > 0 else np.zeros(len(names))
+    joints = [{"joint": names[j], "share_of_excess": float(shares[j]), "rms": float(rms[j])}
+              for j in np.argsort(-shares) if shares[j] >= 0.1]
+    dt = rep.trajs[0].log.dt
+    power = np.abs(np.fft.rfft(r * mask[..., None], axis=1)) ** 2  # (nwin, nfreq, n)
+    freq = np.fft.rfftfreq(r.shape[1], dt)
+    edges = [*BANDS_HZ, np.inf]
+    total = max(float(power[:, 1:].sum()), 1e-300)  # the DC bin is a window's mean offset: no band
+    bands = [{"from_hz": lo, "to_hz": None if hi == np.inf else hi,
+              "share_of_power": float(power[:, (freq >= max(lo, 1e-9)) & (freq < hi)].sum() / total)}
+             for lo, hi in zip(edges[:-1], edges[1:])]
+    regimes = regime_breakdown(rep, r)
+    strongest = sorted(regimes, key=lambda k: -regimes[k]["ratio_to_overall"])
+    return {"joints": joints, "bands": bands,
+            "regimes": {k: regimes[k]["ratio_to_overall"] for k in strongest},
+            "strongest_regime": strongest[0] if strongest else None}
+
+
 def where(rep: Replayer, r: np.ndarray, open_loop: list[np.ndarray], floor: np.ndarray) -> dict:
     """The gap breakdown of the nominal replay.
 
@@ -132,33 +195,12 @@ def where(rep: Replayer, r: np.ndarray, open_loop: list[np.ndarray], floor: np.n
     rms_vel = np.sqrt(np.sum(vel_pred_err**2, axis=(0, 1)) / max(1, (mask[:, 1:] & mask[:, :-1]).sum()))
     excess = np.sqrt(np.maximum(rms**2 - floor**2, 0.0))
 
-    regime_sum = {k: np.zeros(n) for k in REGIMES}
-    regime_cnt = {k: np.zeros(n) for k in REGIMES}
     per_window = []
     for ti, tr in enumerate(rep.trajs):
-        sel = np.flatnonzero(w.traj == ti)
-        if not len(sel):
-            continue
-        masks = regime_masks(tr)
-        idx = np.minimum(w.start[sel][:, None] + np.arange(1, w.size)[None], len(tr.log.time) - 1)
-        inside = mask[sel][..., None]
-        for key, m in masks.items():
-            hit = m[idx] & inside
-            regime_sum[key] += np.sum(r[sel] ** 2 * hit, axis=(0, 1))
-            regime_cnt[key] += hit.sum(axis=(0, 1))
-        for k, s in zip(sel, w.start[sel]):
-            per_window.append({"log": tr.log.meta.get("source", f"log{ti}"), "t0": float(tr.log.time[s]),
+        for k in np.flatnonzero(w.traj == ti):
+            per_window.append({"log": tr.log.meta.get("source", f"log{ti}"), "t0": float(tr.log.time[w.start[k]]),
                                "rms": float(np.sqrt(np.sum(r[k] ** 2) / (mask[k].sum() * n)))})
-
-    regimes = {}
-    for key in REGIMES:
-        if regime_cnt[key].sum() == 0:
-            continue
-        total = float(np.sqrt(regime_sum[key].sum() / regime_cnt[key].sum()))
-        regimes[key] = {"rms": total, "share_of_samples": float(regime_cnt[key].sum() / (count * n)),
-                        "ratio_to_overall": total / max(float(np.sqrt(np.mean(rms**2))), 1e-12),
-                        "per_joint": {names[j]: (float(np.sqrt(regime_sum[key][j] / regime_cnt[key][j]))
-                                                 if regime_cnt[key][j] else None) for j in range(n)}}
+    regimes = regime_breakdown(rep, r)
 
     per_joint = {}
     bands = np.array([0.25, 0.5, 1.0, 2.0, 4.0, 8.0])

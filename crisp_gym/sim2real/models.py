@@ -1,8 +1,10 @@
-"""The three bundled models the gap tool is checked on, composed or adapted with MjSpec.
+"""The bundled models the gap tool is checked on, composed or adapted with MjSpec.
 
 * a single Dynamixel XL330 servo swinging a pendulum (the real ``bam_xl330`` logs);
 * the Unitree Go2 with its base fixed in the air (the real ``go2_fixed_base`` log);
-* the crisp humanoid with its pelvis fixed above a floor, legs touching it (blind bench).
+* the crisp humanoid with its pelvis fixed above a floor, legs touching it (blind bench);
+* a 6-DoF arm whose drives span two orders of magnitude (blind bench);
+* a two-joint leg on a vertical rail that stands, squats and stamps on a floor (blind bench).
 
 All use MuJoCo position actuators, so that ``ctrl`` is the commanded joint angle and the
 PD loop runs inside the integrator, as it does on the servo's or the robot's own board.
@@ -182,6 +184,107 @@ def lowest_point(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
 
 def build_humanoid_bench() -> mujoco.MjModel:
     return build_humanoid_bench_spec().compile()
+
+
+@dataclass(frozen=True)
+class ArmDrive:
+    """One joint of the bench arm: its axis, the link it moves, and its drive (gear ratio,
+    rotor inertia, PD gains at the joint, torque limit)."""
+
+    axis: tuple[float, float, float]
+    link: float
+    mass: float
+    gear: float
+    kp: float
+    kd: float
+    torque_limit: float
+
+
+ARM_ROTOR_INERTIA = 2e-5
+"""kg·m², a small BLDC rotor; each joint's armature is this times its gear ratio squared."""
+ARM_DRIVES: tuple[ArmDrive, ...] = (
+    ArmDrive((0, 0, 1), 0.10, 2.0, 100.0, 400.0, 20.0, 120.0),  # base yaw
+    ArmDrive((0, 1, 0), 0.35, 2.5, 100.0, 400.0, 20.0, 120.0),  # shoulder pitch
+    ArmDrive((0, 1, 0), 0.30, 1.5, 50.0, 150.0, 6.0, 50.0),  # elbow pitch
+    ArmDrive((1, 0, 0), 0.06, 0.5, 10.0, 12.0, 0.4, 6.0),  # wrist roll
+    ArmDrive((0, 1, 0), 0.06, 0.4, 5.0, 6.0, 0.15, 3.0),  # wrist pitch
+    ArmDrive((1, 0, 0), 0.08, 0.2, 1.0, 1.0, 0.02, 0.6),  # flange roll
+)
+"""Gear ratios from 100 to 1 (reflected inertia from 0.2 to 2e-5 kg·m²), gains and torque
+limits spanning more than two orders of magnitude, as on an industrial arm's big and small axes."""
+ARM_JOINTS: tuple[str, ...] = tuple(f"arm{i + 1}" for i in range(len(ARM_DRIVES)))
+
+
+def build_arm_spec(timestep: float = 0.001) -> mujoco.MjSpec:
+    """A 6-DoF serial arm (yaw, pitch, pitch, roll, pitch, roll) on a fixed base, each link a
+    capsule along x of the previous one, position servos named as their joints."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "bench_arm"
+    spec.option.timestep = timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    parent, pos = spec.worldbody, [0.0, 0.0, 0.2]
+    for name, d in zip(ARM_JOINTS, ARM_DRIVES):
+        body = parent.add_body(name=f"link{name[3:]}", pos=pos)
+        body.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=list(d.axis),
+                       armature=ARM_ROTOR_INERTIA * d.gear**2)
+        body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, d.link, 0, 0], size=[0.03, 0, 0],
+                      mass=d.mass, contype=0, conaffinity=0)
+        act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=d.kp, kv=d.kd)
+        act.forcelimited = True
+        act.forcerange = (-d.torque_limit, d.torque_limit)
+        act.ctrllimited = False
+        parent, pos = body, [d.link, 0.0, 0.0]
+    return spec
+
+
+def build_arm() -> mujoco.MjModel:
+    return build_arm_spec().compile()
+
+
+RAIL_LEG_JOINTS: tuple[str, ...] = ("rail", "hip", "knee")
+"""The rail leg's logged joints: the trunk's height on its rail (unactuated, a linear
+encoder) and the two driven hinges."""
+RAIL_LEG_ACTUATORS: tuple[str, ...] = ("hip", "knee")
+
+
+def build_rail_leg_spec(timestep: float = 0.001) -> mujoco.MjSpec:
+    """A 4 kg trunk on a vertical rail (a slide joint with an end stop 20 cm below its start)
+    and one leg of two 24 cm links with a round foot above a floor, hip and knee position
+    servos. Crouched deep enough, the trunk rests on the stop and the foot swings free;
+    otherwise the leg carries the trunk: contact in stance and swing, impacts when it stamps.
+    Carries the ``support_box`` placeholder (:func:`add_support_slot`)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "bench_rail_leg"
+    spec.option.timestep = timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[1.0, 1.0, 0.05], pos=[0, 0, -0.05],
+                            contype=1, conaffinity=2, friction=[1.0, 0.005, 0.0001])
+    trunk = spec.worldbody.add_body(name="trunk", pos=[0.0, 0.0, 0.5])
+    trunk.add_joint(name="rail", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], range=[-0.2, 0.1], limited=True,
+                    damping=1.0)
+    trunk.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.08, 0.08, 0.05], mass=4.0, contype=0, conaffinity=0)
+    thigh = trunk.add_body(name="thigh")
+    thigh.add_joint(name="hip", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0], armature=0.01)
+    thigh.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, -0.24], size=[0.025, 0, 0], mass=1.2,
+                   contype=0, conaffinity=0)
+    shank = thigh.add_body(name="shank", pos=[0.0, 0.0, -0.24])
+    shank.add_joint(name="knee", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0], armature=0.01)
+    shank.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, -0.24], size=[0.02, 0, 0], mass=0.5,
+                   contype=0, conaffinity=0)
+    shank.add_geom(name="foot", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.03, 0, 0], pos=[0, 0, -0.24], mass=0.1,
+                   contype=2, conaffinity=1, friction=[1.0, 0.005, 0.0001])
+    for name in RAIL_LEG_ACTUATORS:
+        act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=150.0, kv=3.0)
+        act.forcelimited = True
+        act.forcerange = (-40.0, 40.0)
+        act.ctrllimited = False
+    return add_support_slot(spec)
+
+
+def build_rail_leg() -> mujoco.MjModel:
+    return build_rail_leg_spec().compile()
 
 
 SUPPORT_SLOT = "support_slot"

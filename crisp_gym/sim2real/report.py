@@ -58,10 +58,17 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
                      f"noise floor {_fmt(result.noise_floor)} rad, {_fmt(result.noise_floor_best)} rad "
                      f"with the selected effect); margin over the runner-up "
                      f"({sel['runner_up']}): {_fmt(100 * (sel['margin_over_runner_up'] or 0), 3)} % in score.")
+        if sel["shares"]:
+            lines.append("Shares of what it removes: " + ", ".join(
+                f"{s['effect']} {100 * s['share']:.0f} %" for s in sel["shares"]) + ".")
     else:
+        closest_shrink = 1.0 - sel["gap_heldout"] / result.gap_before if result.gap_before > 0 else 0.0
         lines.append(f"**Verdict: unexplained.** No effect in the library brings the held-out gap "
-                     f"({_fmt(result.gap_before)} rad) near the noise floor ({_fmt(result.noise_floor)} rad); "
-                     f"the closest, {sel['effect']}, leaves {_fmt(sel['gap_heldout'])} rad.")
+                     f"({_fmt(result.gap_before)} rad) near the noise floor ({_fmt(result.noise_floor)} rad). "
+                     f"The closest candidate, {sel['effect']}, leaves {_fmt(sel['gap_heldout'])} rad "
+                     f"({100 * closest_shrink:.0f} % shrink); it is the nearest model, not a cause: an effect "
+                     f"outside the library can be imitated by a mix of others.")
+        lines += ["", *_residual_lines(result.residual)]
     lines += ["", f"Held out: {result.heldout}.", ""]
     if sel:
         lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
@@ -97,6 +104,20 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
+
+
+def _residual_lines(residual: dict | None) -> list[str]:
+    """What the closest candidate leaves, in words (an unexplained verdict's ``residual``)."""
+    if not residual:
+        return []
+    joints = ", ".join(f"{j['joint']} ({100 * j['share_of_excess']:.0f} %)" for j in residual["joints"]) or "none"
+    band = max(residual["bands"], key=lambda b: b["share_of_power"])
+    upper = "up" if band["to_hz"] is None else f"{band['to_hz']:g} Hz"
+    regime = residual["strongest_regime"]
+    ratio = residual["regimes"].get(regime) if regime else None
+    return [f"What remains: excess over the noise floor on {joints}; "
+            f"{100 * band['share_of_power']:.0f} % of its power between {band['from_hz']:g} Hz and {upper}; "
+            + (f"strongest in `{regime}` ({_fmt(ratio, 3)} × its overall RMS)." if regime else "no regime stands out.")]
 
 
 def _plots(result: Diagnosis, out: Path) -> list[str]:

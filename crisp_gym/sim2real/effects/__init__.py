@@ -49,9 +49,12 @@ from crisp_gym.sim2real.effects.loads import (
     ComShift,
     LoadFriction,
     MassScale,
+    Payload,
     StribeckFriction,
     actuator_torque,
+    add_point_mass,
     lever_scale,
+    release_inertial_frame,
 )
 from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderBias, SensorDelay
 from crisp_gym.sim2real.replay import Trajectory
@@ -59,15 +62,15 @@ from crisp_gym.sim2real.replay import Trajectory
 __all__ = [
     "EFFECT_TYPES", "FAMILIES", "SUPPORT_POSTURES", "ActuatorDelay", "Armature", "Backlash", "CannotApply", "ComShift",
     "ContactSoftness", "CoulombFriction", "Effect", "EncoderBias", "GainScale", "GroundFriction", "GroundHeight",
-    "GroundTilt", "LoadFriction", "MassScale", "Param", "SensorDelay", "Signals", "StribeckFriction", "SupportBox",
-    "TorqueSaturation", "ViscousDamping", "actuator_torque", "check_families", "ground_geoms", "ground_top",
-    "inertia_scale", "joint_actuators", "lever_scale", "library", "speed_scale", "support_points", "torque_scale",
+    "GroundTilt", "LoadFriction", "MassScale", "Param", "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox",
+    "TorqueSaturation", "ViscousDamping", "actuator_torque", "add_point_mass", "check_families", "ground_geoms", "ground_top",
+    "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale", "support_points", "torque_scale",
 ]
 
 
 EFFECT_TYPES: tuple[type[Effect], ...] = (
     ActuatorDelay, SensorDelay, CoulombFriction, ViscousDamping, Armature, GainScale, TorqueSaturation,
-    Backlash, EncoderBias, MassScale, ComShift, LoadFriction, StribeckFriction, GroundFriction, ContactSoftness,
+    Backlash, EncoderBias, MassScale, ComShift, Payload, LoadFriction, StribeckFriction, GroundFriction, ContactSoftness,
     GroundHeight, GroundTilt, SupportBox,
 )
 """Every effect of the library, in the order the report lists them."""

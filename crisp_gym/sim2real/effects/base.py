@@ -53,6 +53,7 @@ class Effect:
     name = "effect"
     family = "effect"
     touches_model = False
+    changes_inertia = False  # edits masses, centres of mass or inertias: the model's constants are recomputed
     state_friction = False
     per_joint_allowed = True
     focus_allowed = False
@@ -64,7 +65,9 @@ class Effect:
 
     @property
     def label(self) -> str:
-        scope = "per-joint" if self.per_joint else ("shared" if self.joints is None else ",".join(self.joints))
+        scope = "shared" if self.joints is None else ",".join(self.joints)
+        if self.per_joint:  # one parameter per joint: of every joint, or of those named
+            scope = "per-joint" if self.joints is None else f"per-joint: {scope}"
         return f"{self.name}[{scope}]"
 
     # -- targets -----------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from crisp_gym.sim2real.effects.base import Effect, Param, joint_actuators, speed_scale, torque_scale
 from crisp_gym.sim2real.replay import Trajectory
@@ -15,6 +16,7 @@ class MassScale(Effect):
     masses and inertias of every body moved by a target joint, times ``scale``."""
 
     name, family, touches_model, per_joint_allowed, focus_allowed = "mass_scale", "mass", True, False, True
+    changes_inertia = True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("scale", 1.0, 0.3, 3.0, 0.01, "")]
@@ -47,6 +49,7 @@ class ComShift(Effect):
     ``across`` it, in the plane normal to the joint axis (the axial part has no effect)."""
 
     name, family, touches_model, per_joint_allowed, focus_allowed = "com_shift", "mass", True, False, True
+    changes_inertia = True
 
     def params(self, tr: Trajectory) -> list[Param]:
         reach = max(2.0 * float(lever_scale(tr)[self.columns(tr)].max()), 0.05)
@@ -60,7 +63,81 @@ class ComShift(Effect):
         for c in self.columns(tr):
             jid = model.joint(tr.log.joint_names[c]).id
             along, across = _lever_frame(model, jid)
-            model.body_ipos[model.jnt_bodyid[jid]] += x[0] * along + x[1] * across
+            body = model.jnt_bodyid[jid]
+            release_inertial_frame(model, body)
+            model.body_ipos[body] += x[0] * along + x[1] * across
+
+
+class Payload(Effect):
+    """A load the model lacks at the tool (a gripper, a tool, a sensor, a carried part): a point
+    mass ``mass`` at ``x, y, z`` in the frame of the last body the target joints move, added to
+    that body's mass, centre of mass and inertia. An offset along a joint's own axis changes no
+    torque of that joint but those of the joints above it."""
+
+    name, family, touches_model, per_joint_allowed, focus_allowed = "payload", "mass", True, False, True
+    changes_inertia = True
+
+    def _tool(self, model: mujoco.MjModel, tr: Trajectory) -> int:
+        """The deepest body the target joints move (the end of their chain)."""
+        bodies = _moved_bodies(model, [model.joint(tr.log.joint_names[c]).id for c in self.columns(tr)])
+        return int(max(bodies, key=lambda b: (_depth(model, b), b)))
+
+    def _scales(self, tr: Trajectory) -> tuple[float, float]:
+        """The mass the target joints move (kg) and a reach (m): the longest lever, at least 5 cm."""
+        m = tr.model
+        moved = _moved_bodies(m, [m.joint(tr.log.joint_names[c]).id for c in self.columns(tr)])
+        return float(m.body_mass[moved].sum()), max(float(lever_scale(tr)[self.columns(tr)].max()), 0.05)
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        mass, reach = self._scales(tr)
+        offset = [Param(axis, 0.0, -3 * reach, 3 * reach, 1e-3 * reach, "m") for axis in ("x", "y", "z")]
+        return [Param("mass", 0.0, 0.0, 3.0 * mass, 0.01 * mass, "kg"), *offset]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        mass, _ = self._scales(tr)
+        com = tr.model.body_ipos[self._tool(tr.model, tr)]
+        return [np.array([f * mass, *com]) for f in (0.2, 0.6)]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        b = self._tool(model, tr)
+        add_point_mass(model, b, float(x[0]), np.asarray(x[1:4], dtype=float))
+
+
+def _depth(model: mujoco.MjModel, body: int) -> int:
+    depth = 0
+    while body > 0:
+        body, depth = int(model.body_parentid[body]), depth + 1
+    return depth
+
+
+def add_point_mass(model: mujoco.MjModel, body: int, mass: float, point: np.ndarray) -> None:
+    """Add a point mass at ``point`` (body frame) to ``body``: its mass, centre of mass and
+    inertia (parallel-axis theorem; the new principal axes become its inertial frame)."""
+    if mass <= 0:
+        return
+    m0, c0 = float(model.body_mass[body]), model.body_ipos[body].copy()
+    rot = Rotation.from_quat(model.body_iquat[body], scalar_first=True).as_matrix()
+    inertia = rot @ np.diag(model.body_inertia[body]) @ rot.T
+    m1 = m0 + mass
+    c1 = (m0 * c0 + mass * point) / m1
+    for m, d in ((m0, c0 - c1), (mass, point - c1)):
+        inertia = inertia + m * (d @ d * np.eye(3) - np.outer(d, d))
+    release_inertial_frame(model, body)
+    values, axes = np.linalg.eigh(inertia)
+    if np.linalg.det(axes) < 0:  # a proper rotation for the quaternion
+        axes[:, 0] *= -1
+    model.body_mass[body] = m1
+    model.body_ipos[body] = c1
+    model.body_inertia[body] = np.maximum(values, 1e-12)
+    model.body_iquat[body] = Rotation.from_matrix(axes).as_quat(scalar_first=True)
+
+
+def release_inertial_frame(model: mujoco.MjModel, body: int) -> None:
+    """Let ``body``'s centre of mass and inertial axes be edited: a body compiled with its
+    inertial frame on its own frame is flagged so, and MuJoCo then ignores a changed
+    ``body_ipos`` (a COM shift silently did nothing) and ``mj_setConst`` refuses the model."""
+    model.body_sameframe[body] = 0
+    model.body_simple[body] = 0
 
 
 def _lever(model: mujoco.MjModel, jid: int) -> tuple[np.ndarray, np.ndarray]:

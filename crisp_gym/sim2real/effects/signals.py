@@ -21,23 +21,26 @@ def _shift(signal: np.ndarray, shift: float) -> np.ndarray:
 
 class ActuatorDelay(Effect):
     """Commands reach the actuators ``delay`` seconds late (bus, filtering, firmware): all of
-    them, or (confined to a joint) only the drives of that joint, as one slow servo on a bus."""
+    them, only the drives of one joint (one slow servo on a bus), or each joint's drives with
+    a delay of their own."""
 
-    name, family, per_joint_allowed, focus_allowed = "actuator_delay", "delay", False, True
+    name, family, focus_allowed = "actuator_delay", "delay", True
 
     def params(self, tr: Trajectory) -> list[Param]:
-        return [Param("delay", 0.01, 0.0, 0.15, 0.25 * tr.log.dt, "s")]
+        return self.expand([Param("delay", 0.01, 0.0, 0.15, 0.25 * tr.log.dt, "s")], tr)
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
-        return [np.array([d]) for d in (0.004, 0.012, 0.025, 0.045, 0.07, 0.1)]
+        n = len(self.params(tr))
+        return [np.full(n, d) for d in (0.004, 0.012, 0.025, 0.045, 0.07, 0.1)]
 
     def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
-        delayed = _shift(sig.ctrl, x[0] * tr.nsub / tr.log.dt)
-        if self.joints is None:
-            return Signals(delayed, sig.qpos, sig.qvel)
-        drives = np.concatenate(self.actuators_of(tr, self.columns(tr)))
+        if self.joints is None and not self.per_joint:
+            return Signals(_shift(sig.ctrl, x[0] * tr.nsub / tr.log.dt), sig.qpos, sig.qvel)
         ctrl = sig.ctrl.copy()
-        ctrl[:, drives] = delayed[:, drives]
+        cols = self.columns(tr)
+        for drives, delay in zip(self.actuators_of(tr, cols), self.values(x, tr)):
+            if len(drives):
+                ctrl[:, drives] = _shift(sig.ctrl[:, drives], delay * tr.nsub / tr.log.dt)
         return Signals(ctrl, sig.qpos, sig.qvel)
 
 
@@ -65,9 +68,10 @@ class SensorDelay(Effect):
 
 class Backlash(Effect):
     """Play between command and joint: the effective target moves only once the command
-    has crossed a dead band of half-width ``gap`` (a play operator on the command)."""
+    has crossed a dead band of half-width ``gap`` (a play operator on the command), on every
+    drive or (confined to a joint) on that joint's drives only."""
 
-    name, family, per_joint_allowed = "backlash", "backlash", False
+    name, family, per_joint_allowed, focus_allowed = "backlash", "backlash", False, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")]
