@@ -301,9 +301,8 @@ def test_a_point_mass_added_to_a_body_moves_it_as_a_welded_body_would():
       <body name="b" pos="0.3 0 0" quat="0.9 0.1 0.3 0.2"><joint axis="1 0 0"/>
         <geom type="box" size="0.05 0.02 0.03" pos="0.04 0.01 0" mass="0.3"/>{}</body></body></worldbody></mujoco>"""
     point, mass = np.array([0.07, -0.03, 0.05]), 0.4
-    welded = mujoco.MjModel.from_xml_string(xml.format(
-        f'<body pos="{point[0]} {point[1]} {point[2]}"><inertial pos="0 0 0" mass="{mass}" diaginertia="1e-9 1e-9 1e-9"/>'
-        "</body>"))
+    inertial = f'<inertial pos="0 0 0" mass="{mass}" diaginertia="1e-9 1e-9 1e-9"/>'
+    welded = mujoco.MjModel.from_xml_string(xml.format(f'<body pos="{point[0]} {point[1]} {point[2]}">{inertial}</body>'))
     added = mujoco.MjModel.from_xml_string(xml.format(""))
     fx.add_point_mass(added, added.body("b").id, mass, point)
     mujoco.mj_setConst(added, mujoco.MjData(added))

@@ -38,9 +38,9 @@ from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import (
     ARM_JOINTS,
     GO2_JOINTS,
+    HUMANOID_BENCH_JOINTS,
     RAIL_LEG_ACTUATORS,
     RAIL_LEG_JOINTS,
-    HUMANOID_BENCH_JOINTS,
     SERVO_ACTUATOR,
     SERVO_JOINT,
     ServoConfig,
@@ -127,7 +127,8 @@ def scenario(name: str, cfg: BenchConfig) -> Scenario:
                         2 * np.pi / 32768, 2e-4, 0.02)
     if name == "arm":
         # a 14-bit encoder, as on many arm joints' motor side divided down (here: at the joint)
-        return Scenario(name, build_arm(), ARM_JOINTS, ARM_JOINTS, 200.0, 5.0, np.array([0.0, 0.6, -1.2, 0.0, 0.6, 0.0]),
+        base = np.array([0.0, 0.6, -1.2, 0.0, 0.6, 0.0])
+        return Scenario(name, build_arm(), ARM_JOINTS, ARM_JOINTS, 200.0, 5.0, base,
                         np.array([0.6, 0.3, 0.4, 0.8, 0.5, 1.0]), 2 * np.pi / 16384, 2e-4)
     if name == "rail_leg":
         # the hip sways the foot fore and aft, the knee bends it from stance (trunk carried) to a

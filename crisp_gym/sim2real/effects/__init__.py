@@ -64,14 +64,15 @@ __all__ = [
     "ContactSoftness", "CoulombFriction", "Effect", "EncoderBias", "GainScale", "GroundFriction", "GroundHeight",
     "GroundTilt", "LoadFriction", "MassScale", "Param", "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox",
     "TorqueSaturation", "ViscousDamping", "actuator_torque", "add_point_mass", "check_families", "ground_geoms", "ground_top",
-    "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale", "support_points", "torque_scale",
+    "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale",
+    "support_points", "torque_scale",
 ]
 
 
 EFFECT_TYPES: tuple[type[Effect], ...] = (
     ActuatorDelay, SensorDelay, CoulombFriction, ViscousDamping, Armature, GainScale, TorqueSaturation,
-    Backlash, EncoderBias, MassScale, ComShift, Payload, LoadFriction, StribeckFriction, GroundFriction, ContactSoftness,
-    GroundHeight, GroundTilt, SupportBox,
+    Backlash, EncoderBias, MassScale, ComShift, Payload, LoadFriction, StribeckFriction, GroundFriction,
+    ContactSoftness, GroundHeight, GroundTilt, SupportBox,
 )
 """Every effect of the library, in the order the report lists them."""
 
