@@ -12,8 +12,11 @@ person walks in, sits on a low half-log whose top is 0.23-0.25 m above the groun
 Figures per input: wall time and seconds per stage; whether the camera was solved or fixed; the
 ground under the planted feet (sole height above the highest box top under it, median and p90 over
 planted frames); the seat (the highest box top under the seated pelvis, against the log's
-0.23-0.25 m); the seated pelvis joint and the seated body's underside above that top; and whether
-``gym.make("CrispTrack-v0", clip=...)`` loads the clip. Usage::
+0.23-0.25 m); above that top, the seated humanoid's hip joints' midpoint (where MediaPipe's hip
+landmarks are), its pelvis joint (7.6 cm above the hip joints in this humanoid) and its body's
+underside; the camera's height, the stature MediaPipe's body size implies and the metrology check
+of the scale (:mod:`crisp_gym.reconstruct.body_scale`); and whether ``gym.make("CrispTrack-v0", clip=...)``
+loads the clip. Usage::
 
     python benchmarks/video_reconstruct.py [--inputs folder mp4 tripod] [--out runs/bench_video]
 """
@@ -100,6 +103,7 @@ def fidelity(clip_dir: Path) -> dict:
     gaps = np.abs(np.asarray(gaps))
     kin = compute_kinematics(motion, model)
     pelvis = kin.body_pos[:, BODY_NAMES.index("Pelvis")]
+    hips = kin.body_pos[:, [BODY_NAMES.index("L_Hip"), BODY_NAMES.index("R_Hip")]].mean(axis=1)
     seated = pelvis[:, 2] < np.percentile(pelvis[:, 2], 20)
     seat_top = float(np.median(highest_top(pelvis[seated, :2], clip.boxes)))
     underside = seated_underside(motion)[seated]
@@ -109,10 +113,14 @@ def fidelity(clip_dir: Path) -> dict:
     meta = json.loads((clip_dir / "meta.json").read_text())
     return {"planted_gap_median_cm": 100 * float(np.median(gaps)),
             "planted_gap_p90_cm": 100 * float(np.percentile(gaps, 90)),
-            "seat_top_m": seat_top, "seated_pelvis_above_seat_m": float(np.median(pelvis[seated, 2]) - seat_top),
+            "seat_top_m": seat_top, "seated_hips_above_seat_m": float(np.median(hips[seated, 2]) - seat_top),
+            "seated_pelvis_above_seat_m": float(np.median(pelvis[seated, 2]) - seat_top),
             "seated_underside_above_seat_m": float(np.median(underside) - seat_top), "loads": True,
             "static_camera": meta["quality"]["static_camera"], "registered": meta["quality"]["registered"],
             "keyframes": meta["quality"]["keyframes"], "scale_spread": meta["quality"]["scale_spread"],
+            "focal_px": meta["intrinsic"][0][0], "camera_height_m": meta["quality"]["camera_height_m"],
+            "implied_stature_m": meta["quality"]["implied_stature_m"],
+            "scale_check": meta["quality"]["scale_check"], "floor_source": meta["quality"]["floor_source"],
             "timings": meta["timings"], "warnings": meta["quality"]["warnings"]}
 
 
@@ -131,16 +139,20 @@ def main() -> None:
         clip_dir = run(ReconstructArgs(input=path, output=args.out / f"clip_{name}", fps=FPS, overwrite=True))
         rows[name] = {"wall_s": time.perf_counter() - start} | fidelity(clip_dir)
         print(json.dumps({name: rows[name]}, indent=1, default=float), flush=True)
-    print("\n| input | wall (s) | person / cameras / rest (s) | camera | planted feet above support: median / p90 (cm) "
-          "| seat top (m; log 0.23-0.25) | seated pelvis / underside above seat (m) | loads |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| input | wall (s) | person / cameras / rest (s) | camera | focal (px) | camera height (m) "
+          "| scale check | planted feet above support: median / p90 (cm) | seat top (m; log 0.23-0.25) "
+          "| seated hip joints / pelvis joint / underside above seat (m) | loads |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
         t = r["timings"]
         rest = sum(v for k, v in t.items() if k not in ("person", "cameras"))
         camera = "fixed" if r["static_camera"] else f"SfM {r['registered']}/{r['keyframes']}"
+        check = "-" if r["scale_check"] is None else f"{r['scale_check']:.2f}"
         print(f"| {name} | {r['wall_s']:.0f} | {t['person']:.0f} / {t['cameras']:.0f} / {rest:.0f} | {camera} "
+              f"| {r['focal_px']:.0f} | {r['camera_height_m']:.2f} | {check} "
               f"| {r['planted_gap_median_cm']:.1f} / {r['planted_gap_p90_cm']:.1f} | {r['seat_top_m']:.3f} "
-              f"| {r['seated_pelvis_above_seat_m']:.3f} / {r['seated_underside_above_seat_m']:.3f} | {r['loads']} |")
+              f"| {r['seated_hips_above_seat_m']:.3f} / {r['seated_pelvis_above_seat_m']:.3f} / "
+              f"{r['seated_underside_above_seat_m']:.3f} | {r['loads']} |")
     (args.out / "results.json").write_text(json.dumps(rows, indent=1, default=float))
 
 

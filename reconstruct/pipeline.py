@@ -218,6 +218,12 @@ class ReconstructArgs:
     """Plain videos: frames are downscaled so their long side is at most this many pixels."""
     fixed_camera: bool = False
     """Plain videos: the camera stood still (a tripod): no structure from motion, the scene from the person alone."""
+    person_height: float | None = None
+    """Plain videos: the person's stature in metres, when known; the scene is scaled to it (default: the
+    body size MediaPipe gives them, recorded in meta.json as implied_stature_m)."""
+    cache: Path | None = None
+    """Plain videos: a folder keeping the person track and the camera solve (over 90 % of the time); a re-run
+    on the same frames with the same camera settings reuses them."""
     seed: int = 0
     """Plain videos: seed of the RANSAC fits and COLMAP (runs are reproducible)."""
     register: bool = False
@@ -291,12 +297,14 @@ def run_video(args: ReconstructArgs, name: str, out: Path) -> Path:
     from crisp_gym.reconstruct.video import SfmConfig, VideoConfig, check_video_extras, reconstruct_video  # noqa: PLC0415
     from crisp_gym.reconstruct.video_report import write_comparison  # noqa: PLC0415
 
-    check_video_extras(use_sfm=not args.fixed_camera)  # before reading minutes of video
+    # Settings and extras are checked before reading minutes of video.
+    config = VideoConfig(sfm=SfmConfig(seed=args.seed), use_sfm=not args.fixed_camera,
+                         person_height=args.person_height)
+    check_video_extras(use_sfm=not args.fixed_camera)
     start = time.perf_counter()
     frames, fps = read_video(args.input, max_side=args.max_side, fps=args.fps)
     read_time = time.perf_counter() - start
-    config = VideoConfig(sfm=SfmConfig(seed=args.seed), use_sfm=not args.fixed_camera)
-    result = reconstruct_video(frames, fps, config, seed=args.seed)
+    result = reconstruct_video(frames, fps, config, seed=args.seed, cache=args.cache)
     meta = {"name": name, "source": "reconstruct-video", "input": str(args.input.resolve()), "video_fps": fps,
             "image_size": [int(frames.shape[2]), int(frames.shape[1])], "quality": result.flags,
             "timings": {"read": round(read_time, 3)} | {k: round(v, 3) for k, v in result.timings.items()},

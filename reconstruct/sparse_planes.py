@@ -8,8 +8,8 @@ top as in the dense path:
 
 * the **ground**: one box at z = 0 under the floor's points and the person's path;
 * **seats** (:func:`seat_surface`), guided by contact as in the paper: under a body part the
-  motion rests on, the highest level layer of points below it is the surface it rests on (a low
-  log's top, with its sides and the ground under it);
+  motion rests on, the highest level layer of points below it, at its densest, is the surface it
+  rests on (a low log's top, with its sides and the ground under it);
 * other **level tops** (:func:`level_tops`) only where the points say so plainly: a dense layer
   with few points above it (a table top or a step, not a slice through a bush or a slope).
 """
@@ -97,7 +97,9 @@ def seat_surface(points: np.ndarray, patch: np.ndarray, max_drop: float,
 
     The points under the patch's footprint and at most ``max_drop`` below its lowest part are
     scanned from the top down for the first layer with enough points: the top of what is under
-    the body (its sides and the ground below come later in the scan).
+    the body (its sides and the ground below come later in the scan). The top is then the densest
+    layer within one layer's thickness below that first one: the first layer is met at the upper
+    edge of the surface's noise (on the bundled real video, 4-5 cm above the log's densest layer).
     """
     cfg = config or SparsePlaneConfig()
     patch = np.asarray(patch, dtype=float).reshape(-1, 3)
@@ -111,7 +113,9 @@ def seat_surface(points: np.ndarray, patch: np.ndarray, max_drop: float,
     for top in z:  # from the highest point down: the first well-populated layer
         layer = column[np.abs(column[:, 2] - (top - cfg.layer_thickness / 2)) <= cfg.layer_thickness / 2]
         if len(layer) >= cfg.seat_min_points:
-            height = float(np.median(layer[:, 2]))
+            below = z[(z <= top) & (z >= top - 2 * cfg.layer_thickness)][::-1]
+            height, _ = _densest_layer(below, cfg.layer_thickness)
+            layer = column[np.abs(column[:, 2] - height) <= cfg.layer_thickness / 2]
             return _level_box(np.concatenate([layer[:, :2], patch[:, :2]]), height, cfg, "seat")
     return None
 

@@ -11,7 +11,10 @@ The fast path next to the high-fidelity one (MegaSAM depth + GVHMR motion throug
    PnP against their pixels;
 4. **scale** (:func:`metric_scale`): the person's depth at the lowest foot against the depth where
    that foot's ray meets the plane of the scene points around it (median ratio over the frames:
-   the person is metric, SfM is not);
+   the person is metric, SfM is not). The person's size is MediaPipe's, or a stature the user
+   gives (:mod:`reconstruct.body_scale`); once the floor is found, a second measure of the scale,
+   by heights above it where this one measures depths, is recorded (and warned about when the two
+   disagree);
 5. **floor and gravity** (:func:`floor_frame`): the plane of scene points under the feet, its
    normal within :attr:`VideoConfig.max_floor_tilt_deg` of the person's trunk; without scene points
    (or when the feet do not stand on that plane), the plane through the feet's lowest landmarks;
@@ -32,6 +35,7 @@ import importlib.util
 import time
 import warnings
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -42,6 +46,7 @@ from crisp_gym.geometry import fit_plane, ransac_plane
 from crisp_gym.humanoid import BODY_NAMES, build_humanoid
 from crisp_gym.metrics import foot_heights, sole_points
 from crisp_gym.motion import Motion, compute_kinematics, planted_feet
+from crisp_gym.reconstruct.body_scale import ground_metrology, implied_stature, stature_factor
 from crisp_gym.reconstruct.contact import (
     PARTS,
     CompletionResult,
@@ -61,6 +66,7 @@ from crisp_gym.reconstruct.landmarks import (
 from crisp_gym.reconstruct.person import MEDIAPIPE_VERSION, PersonTrack, landmark, runtime_installed, track_person
 from crisp_gym.reconstruct.sfm import CameraSolve, SfmConfig, prior_intrinsic, solve_cameras, static_camera
 from crisp_gym.reconstruct.sparse_planes import SparsePlaneConfig, ground_box, level_tops, seat_surface
+from crisp_gym.reconstruct.video_cache import cached_cameras, cached_track, frames_digest
 from crisp_gym.scene import Box
 
 FEET = ("left_heel", "right_heel", "left_foot_index", "right_foot_index", "left_ankle", "right_ankle")
@@ -93,6 +99,13 @@ class VideoConfig:
         seat_blend: s; the hips are lowered and raised over this time at the ends of a seat contact.
         upright_hip_share: frames whose hips are at least this share of their highest are standing
             or walking, and their median trunk is made vertical (:func:`upright`).
+        person_height: m, the person's stature when known: the scene is scaled so that their legs
+            have this stature's length (:func:`~reconstruct.body_scale.stature_factor`); ``None``
+            takes MediaPipe's body size as it is (recorded as ``implied_stature_m``).
+        scale_check_tolerance: a second measure of the scale, by metrology against the floor
+            (:func:`~reconstruct.body_scale.ground_metrology`), off by more than this share is warned about.
+        trunk_to_floor_warning_deg: a floor whose normal is more than this off the person's median
+            trunk is warned about (:func:`floor_warning`).
     """
 
     fps: float = 30.0
@@ -109,6 +122,15 @@ class VideoConfig:
     seat_drop_max: float = 0.35
     seat_blend: float = 0.3
     upright_hip_share: float = 0.85
+    person_height: float | None = None
+    scale_check_tolerance: float = 0.15
+    trunk_to_floor_warning_deg: float = 12.0
+
+    def __post_init__(self) -> None:
+        if self.person_height is not None and not 0.5 <= self.person_height <= 2.5:
+            raise ValueError(f"person_height must be a human stature in metres (0.5-2.5), got {self.person_height}")
+        if not 0.0 < self.scale_check_tolerance < 1.0:
+            raise ValueError(f"scale_check_tolerance must be in (0, 1), got {self.scale_check_tolerance}")
 
 
 @dataclass(frozen=True)
@@ -238,6 +260,20 @@ def floor_frame(landmarks: np.ndarray, points: np.ndarray, view: np.ndarray, cfg
     tilt = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
     return transform, {"floor_source": source, "floor_inliers": int(inliers.sum()), "trunk_to_floor_deg": tilt}
 
+
+
+def floor_warning(floor: dict, cameras: CameraSolve, max_tilt_deg: float) -> str | None:
+    """A warning when the floor (``floor_frame``'s figures) leans more than ``max_tilt_deg`` against
+    the person's median trunk. MediaPipe's trunk leans a few degrees (2.6-9.1° on the bundled real
+    video's full camera solves); 12-20° came with solves COLMAP cut short under load (30-48 of 64
+    frames), whose camera stood 0.6-1.0 m or 2.1 m above the floor (1.6-1.9 m on the others)."""
+    tilt = floor["trunk_to_floor_deg"]
+    if tilt <= max_tilt_deg:
+        return None
+    solve = "a fixed camera" if cameras.static else (
+        f"the camera solve, {int(cameras.registered.sum())} of {len(cameras.keyframes)} frames registered")
+    return (f"the floor ({floor['floor_source']}) leans {tilt:.0f}° against the person's trunk: the floor or "
+            f"{solve} is doubtful, and heights above the floor with it")
 
 
 def upright(landmarks: np.ndarray, hip_share: float) -> tuple[np.ndarray, float]:
@@ -456,14 +492,17 @@ def check_video_extras(use_sfm: bool = True) -> None:
 
 
 def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None = None, seed: int = 0,
-                      progress: bool = True) -> VideoReconstruction:
-    """Run the stages of the module docstring on ``frames`` ((T, H, W, 3) uint8 RGB at ``fps``)."""
+                      progress: bool = True, cache: Path | None = None) -> VideoReconstruction:
+    """Run the stages of the module docstring on ``frames`` ((T, H, W, 3) uint8 RGB at ``fps``);
+    the person track and the camera solve are kept in and reused from the folder ``cache``
+    (:mod:`reconstruct.video_cache`) when it is given."""
     cfg = config or VideoConfig()
     check_video_extras(cfg.use_sfm)
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
+    digest = frames_digest(frames) if cache is not None else ""
     start = time.perf_counter()
-    track = track_person(frames, progress=progress)
+    track, track_cached = cached_track(cache, digest, lambda: track_person(frames, progress=progress))
     timings["person"] = time.perf_counter() - start
     if track.found.sum() < 2:
         raise ValueError(f"no person found in the video ({track.found.sum()} of {len(frames)} frames)")
@@ -471,14 +510,25 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     start = time.perf_counter()
     height, width = frames.shape[1:3]
     if cfg.use_sfm:
-        cameras = solve_cameras(frames, track.masks, cfg.sfm, progress=progress)
+        cameras, cameras_cached = cached_cameras(cache, digest, repr(cfg.sfm),
+                                                 lambda: solve_cameras(frames, track.masks, cfg.sfm, progress=progress))
     else:
+        cameras_cached = False
         cameras = static_camera(len(frames), prior_intrinsic(height, width, cfg.sfm.focal_factor),
                                 "a fixed camera was asked for (--fixed-camera)")
     timings["cameras"] = time.perf_counter() - start
 
     start = time.perf_counter()
     in_camera = person_in_camera(track, cameras.intrinsic, cfg.min_visibility)
+    try:
+        stature = round(implied_stature(track, cfg.min_visibility), 3)
+    except ValueError:  # legs too rarely seen: only a given stature needs them
+        stature = None
+    body = {"implied_stature_m": stature, "person_height_m": cfg.person_height}
+    if cfg.person_height is not None:
+        # A larger person seen in the same pixels stands proportionally farther: the landmarks
+        # scale about the camera's centre, and the scene with them.
+        in_camera = in_camera * stature_factor(track, cfg.person_height, cfg.min_visibility)
     scale, ratios = 1.0, np.zeros(0)
     if not cameras.static:
         try:
@@ -489,7 +539,13 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     c2w[:, :3, 3] *= scale
     in_sfm = np.einsum("tab,tjb->tja", c2w[:, :3, :3], in_camera) + c2w[:, None, :3, 3]
     world_from_sfm, floor = floor_frame(in_sfm, cameras.points * scale, c2w[0, :3, 2], cfg, rng)
-    landmarks, lean = upright(in_sfm @ world_from_sfm[:3, :3].T + world_from_sfm[:3, 3], cfg.upright_hip_share)
+    in_floor = in_sfm @ world_from_sfm[:3, :3].T + world_from_sfm[:3, 3]
+    check = np.zeros(0)
+    if not cameras.static and floor["floor_source"] == "scene points":  # a floor from the feet checks nothing
+        check = ground_metrology(track.image, in_floor, np.array(_FEET_INDEX), world_from_sfm @ c2w,
+                                 cameras.intrinsic)
+    body["scale_check"] = round(float(np.median(check)), 3) if len(check) >= 3 else None
+    landmarks, lean = upright(in_floor, cfg.upright_hip_share)
     floor["trunk_correction_deg"] = round(lean, 2)
     points = cameras.points * scale @ world_from_sfm[:3, :3].T + world_from_sfm[:3, 3]
     timings["align"] = time.perf_counter() - start
@@ -517,7 +573,17 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     timings["contact"] = time.perf_counter() - start
 
     flags, warn = quality_flags(track, cameras, scale, ratios, in_camera)
-    flags |= floor | {"scale": round(scale, 6), "seats": seat_records}
+    tilted = floor_warning(floor, cameras, cfg.trunk_to_floor_warning_deg)
+    if tilted is not None:
+        warn.append(tilted)
+    if body["scale_check"] is not None and abs(body["scale_check"] - 1.0) > cfg.scale_check_tolerance:
+        warn.append(f"the scale disagrees with metrology against the floor: the scene is {body['scale_check']:.2f} "
+                    f"times the size the person's height above it says (the floor or the camera solve is off)")
+    camera_height = float(np.median((world_from_sfm @ c2w)[:, 2, 3]))
+    flags |= floor | body | {"scale": round(scale, 6), "camera_height_m": round(camera_height, 3),
+                             "seats": seat_records,
+                             "cached": [name for name, hit in (("person", track_cached), ("cameras", cameras_cached))
+                                        if hit]}
     for message in warn:
         warnings.warn(message, stacklevel=2)
     flags["warnings"] = warn

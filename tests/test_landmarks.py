@@ -132,6 +132,13 @@ def test_sparse_surfaces_find_ground_seat_and_table_but_not_a_bush():
     assert seat is not None and seat.center[2] + seat.half_size[2] == pytest.approx(0.25, abs=0.01)
     assert seat_surface(points, patch + [0, 0, 1.0], max_drop=0.35) is None  # nothing within reach below
 
+    # Structure from motion's points scatter ±3 cm about the top, with a few strays above: the
+    # top is where they are densest, not the upper edge of their scatter.
+    noisy = np.concatenate([ground, _slab(rng, 150, (0.5, 1.5), (0.9, 1.1), 0.25, noise=0.03),
+                            _slab(rng, 12, (0.5, 1.5), (0.9, 1.1), 0.36, noise=0.01)])
+    seat = seat_surface(noisy, patch + [0, 0, 0.1], max_drop=0.35)
+    assert seat is not None and seat.center[2] + seat.half_size[2] == pytest.approx(0.25, abs=0.015)
+
     tops = level_tops(points, path, SparsePlaneConfig(radius=3.0))
     heights = sorted(round(b.center[2] + b.half_size[2], 2) for b in tops)
     assert any(abs(h - 0.72) < 0.02 for h in heights), heights

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import gymnasium as gym
 import imageio.v3 as iio
@@ -16,11 +17,12 @@ import pytest
 import crisp_gym  # noqa: F401 - registers CrispTrack-v0
 from crisp_gym import cli
 from crisp_gym.reconstruct import person
+from crisp_gym.reconstruct.body_scale import ground_metrology, implied_stature, stature_factor
 from crisp_gym.reconstruct.io import is_plain_video, read_video
 from crisp_gym.reconstruct.person import PersonTrack, landmark
 from crisp_gym.reconstruct.pipeline import ReconstructArgs, run
 from crisp_gym.reconstruct.sfm import CameraSolve
-from crisp_gym.reconstruct.video import FEET, VideoConfig, floor_frame, metric_scale
+from crisp_gym.reconstruct.video import FEET, VideoConfig, floor_frame, metric_scale, person_in_camera
 from tests.conftest import SHARED_DATA
 
 VIDEO = SHARED_DATA / "videomimic_sitting"
@@ -87,6 +89,9 @@ def test_missing_video_extras_name_the_fix(tmp_path, monkeypatch, capsys):
         iio.imwrite(folder / f"{k}.png", frame)
     assert cli.main(["reconstruct", str(folder), "-o", str(tmp_path / "clip")]) == 2
     assert "crisp_gym.reconstruct.person --install" in capsys.readouterr().err and not (tmp_path / "clip").exists()
+    # A stature in centimetres is refused before anything runs.
+    assert cli.main(["reconstruct", str(folder), "-o", str(tmp_path / "clip"), "--person-height", "175"]) == 2
+    assert "person_height must be a human stature in metres" in capsys.readouterr().err
 
 
 def _pinhole(f: float = 600.0, w: int = 640, h: int = 480) -> np.ndarray:
@@ -96,7 +101,8 @@ def _pinhole(f: float = 600.0, w: int = 640, h: int = 480) -> np.ndarray:
 def _standing_person(frames: int, pelvis_xy: np.ndarray) -> np.ndarray:
     """(T, 33, 3) landmarks of an upright person, world z up, feet at z = 0."""
     points = np.zeros((frames, 33, 3))
-    points[:, :, 2] = 1.0  # everything at chest-ish height unless set below
+    points[:, :, :2] = np.reshape(pelvis_xy, (-1, 1, 2))
+    points[:, :, 2] = 1.0  # everything at chest-ish height over the pelvis unless set below
     for side, dy in (("left", 0.1), ("right", -0.1)):
         for name, z in (("hip", 0.9), ("knee", 0.5), ("ankle", 0.08), ("heel", 0.0), ("foot_index", 0.0),
                         ("shoulder", 1.4)):
@@ -155,6 +161,125 @@ def test_scale_and_floor_from_known_geometry():
     assert figures["floor_source"] == "scene points" and figures["trunk_to_floor_deg"] < 1.0
 
 
+def _seen_person(c2w: np.ndarray, world: np.ndarray, intrinsic: np.ndarray) -> PersonTrack:
+    """The landmarks ``world`` (T, 33, 3) as a camera at ``c2w`` (T, 4, 4) sees them, all visible."""
+    in_camera = np.einsum("tba,tjb->tja", c2w[:, :3, :3], world - c2w[:, None, :3, 3])
+    pixels = in_camera @ intrinsic.T
+    hips = world[:, [landmark("left_hip"), landmark("right_hip")]].mean(axis=1, keepdims=True)
+    return PersonTrack(image=pixels[..., :2] / pixels[..., 2:], world=world - hips,
+                       visibility=np.ones(world.shape[:2]), masks=np.zeros((len(world), 2, 2), bool))
+
+
+def test_ground_metrology_measures_the_scene_against_the_body():
+    """A walking person seen from a handheld camera 1.5 m up: metrology against the floor finds the
+    scene the size the body says (ratio 1), and 1.25 when the scene is made 1.25 times too large
+    (as a focal length 25 % too long makes PnP's depth, and the scale taken from it)."""
+    frames = 12
+    person_xy = np.c_[np.linspace(2.5, 3.5, frames), np.linspace(-0.3, 0.3, frames)]
+    world = _standing_person(frames, person_xy)
+    world[1::2, landmark("left_heel"), 2] += 0.1  # a swinging foot: the lowest one is on the floor
+    c2w = np.stack([_camera(np.array([0.0, 0.02 * k, 1.5]), np.array([3.0, 0.0, 0.6])) for k in range(frames)])
+    intrinsic = _pinhole()
+    track = _seen_person(c2w, world, intrinsic)
+    right = ground_metrology(track.image, world, np.array([landmark(n) for n in FEET]), c2w, intrinsic)
+    assert len(right) == frames and np.median(right) == pytest.approx(1.0, abs=0.01)
+    too_large = c2w.copy()
+    too_large[:, :3, 3] *= 1.25  # the scene about the floor's origin, not the body
+    ratios = ground_metrology(track.image, world, np.array([landmark(n) for n in FEET]), too_large, intrinsic)
+    assert np.median(ratios) == pytest.approx(1.25, abs=0.02)
+
+
+def test_a_focal_length_bundle_adjustment_got_wrong_leaves_the_scale():
+    """A camera solve whose focal length is 25 or 40 % too long, its depths stretched along the
+    first camera's view to match (the pixels are the same: what a small-baseline bundle
+    adjustment can settle on). PnP puts the person farther by as much, but the floor is farther
+    too: the scale is within 3 %, the camera's height within 2 cm, the metrology ratio 1."""
+    rng = np.random.default_rng(0)
+    s_true, frames = 0.01, 12
+    world = _standing_person(frames, np.c_[np.linspace(2.5, 3.5, frames), np.linspace(-0.3, 0.3, frames)])
+    first = _camera(np.array([0.0, 0.0, 1.5]), np.array([3.0, 0.0, 0.6]))
+    c2w = np.tile(first, (frames, 1, 1))
+    c2w[:, :3, 3] += np.arange(frames)[:, None] * 0.01 * first[:3, 0]  # sideways: pixels survive the stretch
+    track = _seen_person(c2w, world, _pinhole())
+    ground = np.c_[rng.uniform(-3, 3, (3000, 2)) + [3.0, 0.0], np.zeros(3000)]
+    in_first = ground @ first[:3, :3] - first[:3, 3] @ first[:3, :3]
+    sfm_c2w = c2w.copy()
+    sfm_c2w[:, :3, 3] /= s_true
+    for stretch in (1.0, 1.25, 1.4):
+        points = (in_first * [1.0, 1.0, stretch]) @ first[:3, :3].T + first[:3, 3]
+        cameras = CameraSolve(intrinsic=_pinhole(600.0 * stretch), cam_c2w=sfm_c2w, keyframes=np.arange(frames),
+                              registered=np.ones(frames, bool), points=points / s_true,
+                              colors=np.zeros((3000, 3), np.uint8), visible=[np.arange(3000)] * frames,
+                              reprojection_error=0.3)
+        in_camera = person_in_camera(track, cameras.intrinsic)
+        depth = np.median(in_camera[:, landmark("left_hip"), 2] / np.linalg.norm(world[:, 0, :2], axis=1))
+        assert depth == pytest.approx(stretch, rel=0.05)  # PnP: the person farther
+        scale, _ = metric_scale(track, in_camera, cameras, window_px=40)
+        assert scale == pytest.approx(s_true, rel=0.03)
+        metric = sfm_c2w.copy()
+        metric[:, :3, 3] *= scale
+        in_sfm = np.einsum("tab,tjb->tja", metric[:, :3, :3], in_camera) + metric[:, None, :3, 3]
+        to_floor, figures = floor_frame(in_sfm, points / s_true * scale, metric[0, :3, 2], VideoConfig(), rng)
+        assert figures["floor_source"] == "scene points"
+        assert (to_floor @ metric[0])[2, 3] == pytest.approx(1.5, abs=0.02)
+        ratios = ground_metrology(track.image, in_sfm @ to_floor[:3, :3].T + to_floor[:3, 3],
+                                  np.array([landmark(n) for n in FEET]), to_floor @ metric, cameras.intrinsic)
+        assert np.median(ratios) == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_known_stature_sets_the_body_size():
+    """Landmarks with the legs of a 1.50 m person in the anthropometric table: that is the implied
+    stature, and a person known to be 1.80 m is 1.2 times their size."""
+    from crisp_gym.humanoid import BODY_NAMES, default_rest_joints
+
+    rest = default_rest_joints(1.5)
+    world = np.zeros((5, 33, 3))
+    for side, body in (("left", "L"), ("right", "R")):
+        for joint, name in (("hip", "Hip"), ("knee", "Knee"), ("ankle", "Ankle")):
+            world[:, landmark(f"{side}_{joint}")] = rest[BODY_NAMES.index(f"{body}_{name}")]
+    track = PersonTrack(image=np.zeros((5, 33, 2)), world=world, visibility=np.ones((5, 33)),
+                        masks=np.zeros((5, 2, 2), bool))
+    assert implied_stature(track) == pytest.approx(1.5)
+    assert stature_factor(track, 1.8) == pytest.approx(1.2)
+    hidden = replace(track, visibility=np.zeros((5, 33)))
+    with pytest.raises(ValueError, match="legs are seen in too few frames"):
+        stature_factor(hidden, 1.8)
+    with pytest.raises(ValueError, match="person_height must be a human stature"):
+        VideoConfig(person_height=17.0)
+
+
+def test_cache_keeps_the_slow_stages(tmp_path):
+    """The person track and a camera solve come back from the cache as they went in; they are
+    computed once per frames and settings, and other frames or settings miss."""
+    from crisp_gym.reconstruct.sfm import static_camera
+    from crisp_gym.reconstruct.video_cache import cached_cameras, cached_track, frames_digest
+
+    rng = np.random.default_rng(0)
+    track = PersonTrack(image=rng.normal(size=(3, 33, 2)), world=rng.normal(size=(3, 33, 3)),
+                        visibility=rng.uniform(size=(3, 33)), masks=rng.uniform(size=(3, 5, 13)) > 0.5)
+    cameras = CameraSolve(intrinsic=_pinhole(), cam_c2w=np.tile(np.eye(4), (3, 1, 1)), keyframes=np.array([0, 2]),
+                          registered=np.array([True, False]), points=rng.normal(size=(4, 3)),
+                          colors=np.zeros((4, 3), np.uint8), visible=[np.array([0, 3]), np.zeros(0, int)],
+                          reprojection_error=0.25, seconds={"features": 1.5})
+    calls = []
+    digest = frames_digest(_frames(3))
+    for _ in range(2):
+        got, _ = cached_track(tmp_path, digest, lambda: calls.append("person") or track)
+        solved, hit = cached_cameras(tmp_path, digest, "settings", lambda: calls.append("cameras") or cameras)
+    assert calls == ["person", "cameras"] and hit
+    for name in ("image", "world", "visibility", "masks"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(track, name))
+    np.testing.assert_array_equal(solved.points, cameras.points)
+    assert [v.tolist() for v in solved.visible] == [[0, 3], []] and solved.seconds == {"features": 1.5}
+    assert not solved.static and solved.reprojection_error == 0.25
+    cached_cameras(tmp_path, digest, "other settings", lambda: calls.append("cameras") or cameras)
+    cached_track(tmp_path, frames_digest(_frames(4)), lambda: calls.append("person") or track)
+    assert calls == ["person", "cameras", "cameras", "person"]
+    fixed, _ = cached_cameras(tmp_path, "x", "y", lambda: static_camera(3, _pinhole(), "no parallax"))
+    again, hit = cached_cameras(tmp_path, "x", "y", lambda: None)
+    assert hit and again.static and again.reason == "no parallax" and again.visible == [] and len(again.points) == 0
+
+
 def _runtime_ready() -> bool:
     try:
         import pycolmap  # noqa: F401
@@ -195,12 +320,14 @@ def test_real_video_frames_become_a_clip_without_network(tmp_path, monkeypatch):
 
     sys.addaudithook(refuse)
     try:
-        out = run(ReconstructArgs(input=frames, output=tmp_path / "clip", fps=2.5, max_side=480))
+        out = run(ReconstructArgs(input=frames, output=tmp_path / "clip", fps=2.5, max_side=480,
+                                  cache=tmp_path / "cache"))
     finally:
         refusing[0] = False
     assert not opened
     meta = json.loads((out / "meta.json").read_text())
     flags = meta["quality"]
+    assert flags["cached"] == [] and len(list((tmp_path / "cache").glob("*.npz"))) == 2
     assert flags["person_found"] > 0.9 and flags["frames"] == len(list(frames.iterdir()))
     assert isinstance(flags["static_camera"], bool) and "warnings" in flags
     if flags["static_camera"]:
@@ -210,6 +337,28 @@ def test_real_video_frames_become_a_clip_without_network(tmp_path, monkeypatch):
     obs, _ = env.reset(seed=0)
     assert np.all(np.isfinite(obs["proprio"]))
     env.close()
+
+    # Again with a stature: MediaPipe and COLMAP are not run, and the scene grows with the person.
+    again = run(ReconstructArgs(input=frames, output=tmp_path / "taller", fps=2.5, max_side=480,
+                                cache=tmp_path / "cache", person_height=1.1 * flags["implied_stature_m"]))
+    taller = json.loads((again / "meta.json").read_text())["quality"]
+    assert taller["cached"] == ["person", "cameras"] and taller["person_height_m"] is not None
+    if not flags["static_camera"]:
+        assert taller["scale"] == pytest.approx(1.1 * flags["scale"], rel=0.02)
+
+
+def test_a_floor_leaning_against_the_trunk_is_warned_about():
+    from crisp_gym.reconstruct.sfm import static_camera
+    from crisp_gym.reconstruct.video import floor_warning
+
+    cameras = CameraSolve(intrinsic=_pinhole(), cam_c2w=np.tile(np.eye(4), (3, 1, 1)), keyframes=np.arange(64),
+                          registered=np.arange(64) < 39, points=np.zeros((0, 3)), colors=np.zeros((0, 3), np.uint8),
+                          visible=[], reprojection_error=0.2)
+    assert floor_warning({"trunk_to_floor_deg": 4.0, "floor_source": "scene points"}, cameras, 12.0) is None
+    message = floor_warning({"trunk_to_floor_deg": 20.0, "floor_source": "feet"}, cameras, 12.0)
+    assert "leans 20°" in message and "39 of 64 frames registered" in message
+    fixed = static_camera(3, _pinhole(), "tripod")
+    assert "a fixed camera" in floor_warning({"trunk_to_floor_deg": 15.0, "floor_source": "feet"}, fixed, 12.0)
 
 
 def test_upright_makes_the_standing_trunk_vertical():
