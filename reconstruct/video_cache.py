@@ -14,15 +14,17 @@ entry is written to a temporary file and renamed).
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
+from crisp_gym.atomic import atomic_path
 from crisp_gym.reconstruct.person import MEDIAPIPE_VERSION, PersonTrack
 from crisp_gym.reconstruct.sfm import CameraSolve
+
+T = TypeVar("T")
 
 
 def frames_digest(frames: np.ndarray) -> str:
@@ -38,14 +40,8 @@ def _entry(cache: Path, kind: str, *parts: str) -> Path:
 
 
 def _write(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".npz", dir=path.parent)
-    os.close(handle)
-    try:
+    with atomic_path(path) as tmp:
         np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
 
 
 def track_to_arrays(track: PersonTrack) -> dict[str, np.ndarray]:
@@ -78,30 +74,29 @@ def cameras_from_arrays(data) -> CameraSolve:
                        seconds=dict(zip(data["seconds_names"].tolist(), data["seconds"].tolist(), strict=True)))
 
 
+def _cached(cache: Path | None, kind: str, digest: str, key: str, compute: Callable[[], T],
+            to_arrays: Callable[[T], dict[str, np.ndarray]], from_arrays: Callable[..., T]) -> tuple[T, bool]:
+    """``compute()``'s result for the frames with ``digest`` under ``key``: from ``cache`` when
+    there, else computed (and stored when ``cache`` is given); and whether it came from the cache."""
+    if cache is None:
+        return compute(), False
+    path = _entry(Path(cache), kind, digest, key)
+    if path.is_file():
+        with np.load(path) as data:
+            return from_arrays(data), True
+    result = compute()
+    _write(path, to_arrays(result))
+    return result, False
+
+
 def cached_track(cache: Path | None, digest: str, compute: Callable[[], PersonTrack]) -> tuple[PersonTrack, bool]:
     """The person track of the frames with ``digest``: from ``cache`` when there, else computed
     (and stored when ``cache`` is given); and whether it came from the cache."""
-    if cache is None:
-        return compute(), False
-    path = _entry(Path(cache), "person", digest, MEDIAPIPE_VERSION)
-    if path.is_file():
-        with np.load(path) as data:
-            return track_from_arrays(data), True
-    track = compute()
-    _write(path, track_to_arrays(track))
-    return track, False
+    return _cached(cache, "person", digest, MEDIAPIPE_VERSION, compute, track_to_arrays, track_from_arrays)
 
 
 def cached_cameras(cache: Path | None, digest: str, settings: str,
                    compute: Callable[[], CameraSolve]) -> tuple[CameraSolve, bool]:
     """The camera solve of the frames with ``digest`` under ``settings`` (a text naming every
     setting it depends on), as :func:`cached_track` does it."""
-    if cache is None:
-        return compute(), False
-    path = _entry(Path(cache), "cameras", digest, settings)
-    if path.is_file():
-        with np.load(path) as data:
-            return cameras_from_arrays(data), True
-    cameras = compute()
-    _write(path, cameras_to_arrays(cameras))
-    return cameras, False
+    return _cached(cache, "cameras", digest, settings, compute, cameras_to_arrays, cameras_from_arrays)
