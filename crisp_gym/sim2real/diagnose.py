@@ -42,6 +42,9 @@ class DiagnoseConfig:
         pairs: forward selection fits this many of the best screened pairs jointly.
         screen_iter: Levenberg-Marquardt iterations of each screening fit (an effect fitted
             on top of the best one held fixed, from its own single fit).
+        later_base_partners: the bases after the best one screen only this many of the best
+            single effects on top of them (the best base screens every one): it keeps a
+            30 s, 12-joint log within two minutes.
         penalty: per extra parameter, the relative increase of the squared held-out gap a
             candidate is charged in the ranking.
         none_factor: a held-out gap below none_factor x the noise floor means "none".
@@ -66,6 +69,7 @@ class DiagnoseConfig:
     bases: int = 2
     pairs: int = 3
     screen_iter: int = 3
+    later_base_partners: int = 8
     penalty: float = 0.02
     none_factor: float = 1.5
     explained_factor: float = 1.6
@@ -364,16 +368,18 @@ def _evaluate(rep: Replayer, cands: list[Candidate]) -> None:
 def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
                    cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
     """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
-    gap, distinct families) is held at its fit, and every single effect of another family is
-    fitted on top of it for a few iterations, from its own single fit (the screen: as cheap as
+    gap, distinct families) is held at its fit, and every single effect of another family (for
+    the bases after the best, the ``cfg.later_base_partners`` best ones) is fitted on top of it
+    for a few iterations, from its own single fit (the screen: as cheap as
     one single fit, and the second effect no longer has to soak up the first, as it does when
     fitted alone); so are the library's effects confined to the joint the held effect leaves
     worst, when that is not the joint the singles were confined to (a second effect on another
     joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out gaps are then
     fitted jointly. More than one base, because an effect fitted alone may stand in for a
     relative of the true one (a sensor delay for an actuator delay beside friction)."""
+    ranked = sorted(singles, key=lambda c: c.heldout_gap)
     bases: list[Candidate] = []
-    for c in sorted(singles, key=lambda c: c.heldout_gap):
+    for c in ranked:
         if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
             bases.append(c)
     names = ref.log.joint_names
@@ -381,9 +387,10 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
     pairs: list[tuple[Candidate, Effect]] = []
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
-    for base in bases:
+    for i, base in enumerate(bases):
         held = Frozen(base.combo.effects[0], base.x)
-        partners: list[tuple[Effect, list[np.ndarray] | None]] = [(c.combo.effects[0], [c.x]) for c in singles]
+        pool = ranked if i == 0 else ranked[:cfg.later_base_partners]
+        partners: list[tuple[Effect, list[np.ndarray] | None]] = [(c.combo.effects[0], [c.x]) for c in pool]
         worst = names[int(np.argmax(base.heldout_per_joint**2 - floor_j**2))] if len(names) > 1 else focus
         if worst != focus:
             partners += [(e, None) for e in library(ref, focus=worst, families=cfg.families or None)
