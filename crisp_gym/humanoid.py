@@ -314,13 +314,20 @@ def build_humanoid_spec(config: HumanoidConfig | None = None) -> mujoco.MjSpec:
     for body in BODY_NAMES[1:]:
         group = gain_group(body)
         for axis in HINGE_AXES:
-            name = f"{body}_{axis}"
-            act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-            act.set_to_position(kp=group.kp, kv=group.kd)
-            act.forcelimited = True
-            act.forcerange = (-group.torque_limit, group.torque_limit)
-            act.ctrllimited = False
+            add_position_servo(spec, f"{body}_{axis}", group.kp, group.kd, group.torque_limit)
     return spec
+
+
+def add_position_servo(spec: mujoco.MjSpec, joint: str, kp: float, kv: float, torque_limit: float,
+                       name: str | None = None) -> mujoco.MjsActuator:
+    """A PD position actuator on ``joint`` (named ``name``, default the joint's name): ``ctrl``
+    is the target angle, unbounded, and the torque is clamped to ±``torque_limit``."""
+    act = spec.add_actuator(name=name or joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    act.set_to_position(kp=kp, kv=kv)
+    act.forcelimited = True
+    act.forcerange = (-torque_limit, torque_limit)
+    act.ctrllimited = False
+    return act
 
 
 def build_humanoid(config: HumanoidConfig | None = None) -> mujoco.MjModel:

@@ -18,6 +18,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from crisp_gym.humanoid import ROOT_JOINT, HumanoidConfig, add_position_servo, build_humanoid_spec
+
 # XL330 electrical model: the firmware turns kp units and a position error into a PWM duty
 # cycle, duty * vin drives a DC motor (torque kt*i, back-EMF kt*w, resistance R). The duty
 # per radian and per kp unit follows from the 4096-count encoder, the kp divisor the
@@ -86,11 +88,7 @@ def build_servo_pendulum_spec(config: ServoConfig | None = None) -> mujoco.MjSpe
     body.add_joint(name=SERVO_JOINT, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0], armature=cfg.armature)
     body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.02, 0, 0], pos=[0, 0, -cfg.length], mass=cfg.mass,
                   contype=0, conaffinity=0)
-    act = spec.add_actuator(name=SERVO_ACTUATOR, target=SERVO_JOINT, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-    act.set_to_position(kp=cfg.stiffness, kv=cfg.back_emf_damping)
-    act.forcelimited = True
-    act.forcerange = (-cfg.torque_limit, cfg.torque_limit)
-    act.ctrllimited = False
+    add_position_servo(spec, SERVO_JOINT, cfg.stiffness, cfg.back_emf_damping, cfg.torque_limit, name=SERVO_ACTUATOR)
     return spec
 
 
@@ -152,8 +150,6 @@ def build_humanoid_bench_spec(penetration: float = 0.005) -> mujoco.MjSpec:
     box) while making every replay window well posed without the root state. The model
     carries the parked placeholder of the ``support_box`` effect (:func:`add_support_slot`).
     """
-    from crisp_gym.humanoid import ROOT_JOINT, HumanoidConfig, build_humanoid_spec
-
     spec = build_humanoid_spec(HumanoidConfig(arena_memory=2 * 1024 * 1024))
     spec.delete(spec.joint(ROOT_JOINT))
     model = spec.compile()
@@ -229,11 +225,7 @@ def build_arm_spec(timestep: float = 0.001) -> mujoco.MjSpec:
                        armature=ARM_ROTOR_INERTIA * d.gear**2)
         body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, d.link, 0, 0], size=[0.03, 0, 0],
                       mass=d.mass, contype=0, conaffinity=0)
-        act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-        act.set_to_position(kp=d.kp, kv=d.kd)
-        act.forcelimited = True
-        act.forcerange = (-d.torque_limit, d.torque_limit)
-        act.ctrllimited = False
+        add_position_servo(spec, name, d.kp, d.kd, d.torque_limit)
         parent, pos = body, [d.link, 0.0, 0.0]
     return spec
 
@@ -275,11 +267,7 @@ def build_rail_leg_spec(timestep: float = 0.001) -> mujoco.MjSpec:
     shank.add_geom(name="foot", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.03, 0, 0], pos=[0, 0, -0.24], mass=0.1,
                    contype=2, conaffinity=1, friction=[1.0, 0.005, 0.0001])
     for name in RAIL_LEG_ACTUATORS:
-        act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-        act.set_to_position(kp=150.0, kv=3.0)
-        act.forcelimited = True
-        act.forcerange = (-40.0, 40.0)
-        act.ctrllimited = False
+        add_position_servo(spec, name, kp=150.0, kv=3.0, torque_limit=40.0)
     return add_support_slot(spec)
 
 
