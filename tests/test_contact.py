@@ -18,6 +18,7 @@ from crisp_gym.reconstruct.contact import (
     PART_OF,
     PARTS,
     CompletionConfig,
+    Contact,
     ContactEvidence,
     FilterConfig,
     body_geometry,
@@ -455,3 +456,30 @@ def test_floor_the_camera_missed_is_built_under_the_feet():
     stance = np.concatenate([geo.centroid(b)[clip.motion.contacts[:, b]] for b in feet])
     tops = support_tops(stance[:, :2], result.boxes + [far_patch])
     assert np.mean(np.nanmin(np.abs(tops), axis=1) < 0.03) > 0.9
+
+
+@pytest.mark.parametrize("toe_raised", [False, True])
+def test_heel_raised_over_its_standing_toe_needs_no_support(toe_raised):
+    """A seated foot on its toes (the real phone video's sitter): the heel is still and low
+    nearby, so it reads as a contact, but its own toe stands on the floor and bears the foot.
+    No box may be built under the heel (the toe would stand 6 cm inside it). The same heel
+    with its toe raised too is a whole foot on an unseen step: that support is built."""
+    from dataclasses import replace
+
+    boxes, motion = _bundled("chair_sit")
+    geo = body_geometry(motion)
+    seated = np.flatnonzero(motion.contacts[:, BODY_NAMES.index("Pelvis")])
+    lift = np.zeros((motion.num_frames, 1, 3))
+    lift[seated, :, 2] = 0.06
+    raised = {"R_Ankle"} | ({"R_Toe"} if toe_raised else set())
+    patches = tuple(p + lift if BODY_NAMES[i] in raised else p for i, p in enumerate(geo.patches))
+    geo = replace(geo, patches=patches)
+    heel = patches[BODY_NAMES.index("R_Ankle")]
+    half = len(seated) // 2
+    contacts = [Contact(body="R_Ankle", part="foot", frame=int(w[len(w) // 2]), start=int(w[0]), stop=int(w[-1]) + 1,
+                        prob=1.0, points=heel[w[len(w) // 2]], normal=np.array([0.0, 0.0, 1.0]))
+                for w in (seated[:half], seated[half:])]
+    built = complete_support(contacts, boxes, CompletionConfig(floor_height=None))
+    assert len(built.boxes) == 1 and abs(built.boxes[0].top_height() - 0.06) < 0.02  # without the foot's geometry
+    with_foot = complete_support(contacts, boxes, CompletionConfig(floor_height=None), geometry=geo)
+    assert len(with_foot.boxes) == (1 if toe_raised else 0)

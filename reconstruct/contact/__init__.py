@@ -115,4 +115,4 @@ def contact_completion(motion: Motion, boxes: list[Box], source: ContactSource, 
     # The clip's scene is only its boxes: the aligned z = 0 holds the humanoid only where a floor
     # box covers it. Floor contacts that the seen floor does not cover (the view cut it off, or
     # only a far patch of floor was seen) must build their support like any other unseen surface.
-    return complete_support(contacts, boxes, replace(cfg.completion, floor_height=None))
+    return complete_support(contacts, boxes, replace(cfg.completion, floor_height=None), geometry)

@@ -10,7 +10,9 @@ import numpy as np
 from sklearn.cluster import DBSCAN
 
 from crisp_gym.geometry import min_area_rectangle, plane_frame, ransac_height_plane, snap_to_gravity
+from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.metrics import box_signed_distance
+from crisp_gym.reconstruct.contact.body_geometry import BodyGeometry
 from crisp_gym.reconstruct.contact.filtering import Contact
 from crisp_gym.scene import Box
 
@@ -123,6 +125,23 @@ def _supported(points: np.ndarray, boxes: list[Box], cfg: CompletionConfig) -> n
     return near
 
 
+FOOT_PARTNER = {"L_Ankle": "L_Toe", "L_Toe": "L_Ankle", "R_Ankle": "R_Toe", "R_Toe": "R_Ankle"}
+"""The other half of each foot: heel and toe bear a foot's weight between them."""
+
+
+def _foot_rests(contact: Contact, geometry: BodyGeometry, boxes: list[Box], cfg: CompletionConfig) -> bool:
+    """Whether ``contact`` is a heel or toe whose whole foot (both halves' patches) mostly rests
+    on ``boxes`` over most of the contact's window: a foot on its toes with the heel raised
+    stands on the floor, whatever its heel patch alone says."""
+    partner = FOOT_PARTNER.get(contact.body)
+    if partner is None:
+        return False
+    window = slice(contact.start, contact.stop)
+    sole = np.concatenate([geometry.patches[BODY_NAMES.index(b)][window] for b in (contact.body, partner)], axis=1)
+    rests = _supported(sole.reshape(-1, 3), boxes, cfg).reshape(sole.shape[:2]).mean(axis=1) >= 0.5
+    return bool(rests.mean() >= 0.5)
+
+
 def _surface_box(points: np.ndarray, hint: np.ndarray, cfg: CompletionConfig, name: str) -> Box:
     """A box whose top face is the RANSAC plane of ``points`` and covers them with the margin."""
     normal, inliers = ransac_height_plane(points, hint, cfg.ransac_threshold, cfg.seed)
@@ -176,11 +195,13 @@ def _hinge(box: Box, others: list[Box], cfg: CompletionConfig) -> Box:
     return Box(center=center, rotation=box.rotation, half_size=half, source=box.source, name=box.name)
 
 
-def complete_support(contacts: list[Contact], boxes: list[Box], cfg: CompletionConfig | None = None
-                     ) -> CompletionResult:
+def complete_support(contacts: list[Contact], boxes: list[Box], cfg: CompletionConfig | None = None,
+                     geometry: BodyGeometry | None = None) -> CompletionResult:
     """Boxes for the support surfaces that ``contacts`` imply and ``boxes`` lack.
 
-    Contacts resting mostly on ``boxes`` (or the floor) are skipped; the rest are clustered per
+    Contacts resting mostly on ``boxes`` (or the floor) are skipped, and so, given the motion's
+    ``geometry``, are a heel or toe whose whole foot mostly rests on them (a seated foot on its
+    toes: its pitched heel patch alone floats); the rest are clustered per
     surface (by horizontal proximity and height along their normal, backrest contacts apart
     from supports below), each surface with at least ``min_contacts`` contacts gets a RANSAC
     plane and a box under it, and the box is extended to meet a perpendicular neighbour
@@ -190,7 +211,8 @@ def complete_support(contacts: list[Contact], boxes: list[Box], cfg: CompletionC
     supported = 0
     pending: list[Contact] = []
     for c in contacts:
-        if _supported(c.points, boxes, cfg).mean() >= 0.5:
+        if _supported(c.points, boxes, cfg).mean() >= 0.5 or (
+                geometry is not None and _foot_rests(c, geometry, boxes, cfg)):
             supported += 1
         else:
             pending.append(c)
