@@ -22,7 +22,7 @@ import yaml
 
 from crisp_gym.atomic import write_text
 from crisp_gym.bundled import BUNDLED_REGISTRY
-from crisp_gym.clip import Clip, load_clip_dir
+from crisp_gym.clip import CLIP_FILES, Clip, load_clip_dir
 
 _CLIP_NAME = re.compile(r"\w[\w.+-]*")
 
@@ -73,12 +73,24 @@ def list_clips() -> dict[str, dict]:
     return {**_read(BUNDLED_REGISTRY), **_read(user_registry_path())}
 
 
+def _is_clip_dir(path: Path) -> bool:
+    return path.is_dir() and any((path / f).is_file() for f in CLIP_FILES)
+
+
+def _names_a_directory(source: str | os.PathLike, names: set[str]) -> bool:
+    """Whether ``source`` means the directory of that spelling: one that holds clip files, or
+    any directory when nothing registered is spelled so (a run folder called ``bundled`` in
+    the working directory must not hide the tag)."""
+    candidate = Path(source).expanduser()
+    return _is_clip_dir(candidate) or (candidate.is_dir() and str(source) not in names)
+
+
 def resolve_clip(name_or_path: str | os.PathLike) -> Path:
-    """The directory of a registered clip name, or ``name_or_path`` itself if it is a directory."""
-    candidate = Path(name_or_path).expanduser()
-    if candidate.is_dir():
-        return candidate
+    """The directory ``name_or_path`` if it holds a clip, else the registered clip of that name
+    (an unregistered directory is returned as it is, for the loader to say what it lacks)."""
     clips = list_clips()
+    if _names_a_directory(name_or_path, set(clips)):
+        return Path(name_or_path).expanduser()
     name = str(name_or_path)
     if name not in clips:
         raise ValueError(f"unknown clip {name!r}: not a directory and not registered; "
@@ -105,17 +117,17 @@ def clips_with_tag(tag: str) -> list[str]:
 def resolve_clip_names(source: str | os.PathLike) -> list[str | Path]:
     """What one clip source names: a clip directory or registered name (itself), else a tag's clips.
 
-    A clip name wins over a tag of the same spelling.
+    A clip name wins over a tag of the same spelling, and both over a directory of that
+    spelling that holds no clip.
     """
-    candidate = Path(source).expanduser()
-    if candidate.is_dir() or str(source) in list_clips():
+    clips = list_clips()
+    tags = {t for entry in clips.values() for t in entry["tags"]} | {BUNDLED_TAG}
+    if _names_a_directory(source, set(clips) | tags) or str(source) in clips:
         return [source]
     tagged = clips_with_tag(str(source))
     if not tagged:
-        clips = list_clips()
-        tags = sorted({t for entry in clips.values() for t in entry["tags"]} | {BUNDLED_TAG})
         raise ValueError(f"unknown clip {str(source)!r}: not a directory, a registered clip or a tag; "
-                         f"registered clips are {sorted(clips)}, tags are {tags}")
+                         f"registered clips are {sorted(clips)}, tags are {sorted(tags)}")
     return tagged
 
 

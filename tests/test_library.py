@@ -3,6 +3,8 @@ single-clip env shows it."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -22,6 +24,22 @@ def test_tag_names_the_tagged_clips_and_bundled_names_all_bundled_clips():
     assert resolve_clip_names("flat_walk") == ["flat_walk"]  # a clip name is not expanded
     with pytest.raises(ValueError, match="tags are"):
         resolve_clip_names("no_such_clip_or_tag")
+
+
+def test_a_folder_without_a_clip_does_not_hide_a_tag_or_clip_of_its_name(tmp_path, monkeypatch):
+    """A run folder called ``bundled`` (or ``flat_walk``) in the working directory must not turn
+    ``--clip bundled`` into "bundled is not a complete clip"; a folder that holds a clip wins."""
+    from crisp_gym.registry import resolve_clip
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bundled").mkdir()
+    (tmp_path / "flat_walk").mkdir()
+    (tmp_path / "my_run").mkdir()
+    assert resolve_clip_names("bundled") == sorted(_read(BUNDLED_REGISTRY))
+    assert resolve_clip("flat_walk") == _read(BUNDLED_REGISTRY)["flat_walk"]["path"]
+    assert resolve_clip_names("my_run") == ["my_run"]  # no tag or clip of that name: the folder
+    (tmp_path / "flat_walk" / "meta.json").write_text("{}")
+    assert resolve_clip("flat_walk") == Path("flat_walk")
 
 
 def test_layout_leaves_the_gap_between_consecutive_extents():
