@@ -31,7 +31,7 @@ def mae(result: Diagnosis, key: str) -> float:
 def servo(out: Path) -> None:
     logs = [load_servo_json(f) for f in sorted((DATA / "bam_xl330").glob("*.json"))]
     print("| fit kp | held-out kp | verdict | selected / closest effect | parameters | MAE before (rad) | "
-          "MAE after (rad) | shrink (RMS) |")
+          "MAE after (rad) | held-out RMS, selected or closest |")
     print("|---|---|---|---|---|---|---|---|")
     for fit_kp, test_kp in (((100, 200, 400), (800,)), ((800,), (100, 200, 400))):
         train = [lg for lg in logs if lg[0].meta["kp"] in fit_kp]
@@ -44,7 +44,9 @@ def servo(out: Path) -> None:
         before = mae(res, "pred_before")
         after = mae(res, "pred_after") if res.selected else before
         print(f"| {fit_kp} | {test_kp} | {res.verdict} | {sel['effect']} | {params} | {before:.4f} | "
-              f"{after:.4f} (closest: {mae(res, 'pred_after'):.4f}) | {100 * res.shrink:.0f} % |")
+              f"{after:.4f} (closest: {mae(res, 'pred_after'):.4f}) | "
+              f"{res.gap_before:.4f} → {sel['gap_heldout']:.4f} rad, "
+              f"{100 * (1 - sel['gap_heldout'] / res.gap_before):.0f} % |")
 
 
 def go2(out: Path) -> None:

@@ -35,6 +35,10 @@ def test_delay_is_found_with_its_value():
     p = res.selected["parameters"][0]
     assert abs(p["value"] - 0.03) < 0.003
     assert res.shrink > 0.8
+    # a delay leaves load friction far down the singles: its costly directional form is not fitted
+    assert not any(r["effect"].startswith("gearbox_friction") for r in res.ranking)
+    assert any(s["effect"].startswith("gearbox_friction") and s["reason"].startswith("not refined")
+               for s in res.skipped)
 
 
 def test_no_effect_gives_none():
@@ -122,6 +126,8 @@ def test_load_friction_is_found_with_its_value():
     assert res.verdict == "explained" and res.selected["family"] == "load_friction"
     assert abs(_selected_value(res, "mu") - 0.3) < 0.03
     assert res.shrink > 0.8
+    # load friction ranks first, so its directional form was refined from it (and not preferred)
+    assert any(r["effect"].startswith("gearbox_friction") for r in res.ranking)
 
 
 def test_load_friction_holds_the_joint_under_load():
@@ -372,3 +378,45 @@ def test_different_effects_on_different_joints_are_found_together():
     train, test = (synthesize(sc, truth, t, u, 1.0, rng) for u in (u1, u2))
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
     assert res.verdict == "explained" and res.selected["family"] == "armature+viscous_damping"
+
+
+def _servo_trajectory(truth: dict, seed: int = 0):
+    sc = scenario("servo", BenchConfig())
+    rng = np.random.default_rng(seed)
+    t, u = commands(sc, rng)
+    return sc, bind(synthesize(sc, truth, t, u, 1.0, rng), sc.model)
+
+
+def test_external_torque_is_the_pendulum_gravity_torque():
+    """At rest the servo's load is its pendulum's gravity torque, -m g l sin(q)."""
+    sc, tr = _servo_trajectory({"family": "none"})
+    m = sc.model
+    body = m.jnt_bodyid[0]
+    lever = np.linalg.norm(m.body_ipos[body] - m.jnt_pos[0])
+    q = np.linspace(-1.5, 1.5, 7)[:, None]
+    tau = fx.external_torque(m, tr, np.array([0]), q, np.zeros_like(q))[:, 0]
+    weight = m.body_subtreemass[body] * -m.opt.gravity[2]
+    np.testing.assert_allclose(tau, -weight * lever * np.sin(q[:, 0]), atol=1e-9)
+
+
+def test_gearbox_friction_without_its_directional_and_rest_terms_is_load_friction():
+    sc, tr = _servo_trajectory({"family": "none"})
+    idx = np.arange(0, len(tr.log.time), 7)
+    args = (tr, sc.model, tr.ctrl[idx * tr.nsub], tr.enabled[idx], tr.log.qpos[idx], tr.qvel[idx])
+    plain = fx.LoadFriction().friction(np.array([0.3]), *args)
+    gearbox = fx.GearboxFriction().friction(np.array([0.3, 0.0, 0.0, 1.0]), *args)
+    np.testing.assert_allclose(gearbox, plain, rtol=1e-12)
+    assert plain.max() > 0.01  # the log loads the gear train
+
+
+def test_gearbox_friction_fits_back():
+    """A directional gear friction that sticks harder at rest: the fit finds the load
+    coefficients it was made with, and load friction alone cannot reproduce it."""
+    truth = {"family": "load_friction", "effect": "gearbox_friction", "joint": None, "x": [0.25, 0.12, 1.0, 0.5],
+             "x0": [0.0, 0.0, 0.0, 0.5]}
+    sc, tr = _servo_trajectory(truth, seed=10)
+    fitter = Fitter(Replayer([tr], make_windows([tr], 0.5)))
+    full = fitter.fit(Combo((fx.GearboxFriction(),), tr))
+    plain = fitter.fit(Combo((fx.LoadFriction(),), tr))
+    assert abs(full.x[0] - 0.25) < 0.05 and abs(full.x[1] - 0.12) < 0.05
+    assert full.train_gap < 0.5 * plain.train_gap

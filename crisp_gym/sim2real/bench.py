@@ -242,6 +242,8 @@ def _draw_effect(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Be
         "payload": lambda: _draw_payload(effect, tr, rng),
         # The BAM study's XL330 fit has load coefficients 0.14 (backdriven) and 0.28 (driven).
         "load_friction": lambda: [rng.uniform(0.15, 0.4)],
+        "gearbox_friction": lambda: [rng.uniform(0.15, 0.35), rng.uniform(0.05, 0.2), rng.uniform(0.5, 1.5),
+                                     rng.uniform(0.1, 0.3) * vs],
         "stribeck_friction": lambda: [rng.uniform(0.15, 0.4) * ts, rng.uniform(0.1, 0.3) * vs],
         "support_box": lambda: _draw_support(tr, rng),
         "ground_friction": lambda: [rng.uniform(0.05, 0.2)],
@@ -331,9 +333,10 @@ DETECTABLE = float(np.sqrt(DiagnoseConfig().none_factor ** 2 - 1.0))
 independent noise the measured gap is sqrt(signature^2 + floor^2), and the diagnosis says
 "none" below ``none_factor`` floors: a weaker effect cannot be told from noise at this SNR."""
 
-MAGNITUDE = {"support_box": ("height",), "stribeck_friction": ("static",)}
+MAGNITUDE = {"support_box": ("height",), "stribeck_friction": ("static",), "gearbox_friction": ("motor", "external")}
 """Effects whose parameter error is that of their size only: the box's position is scored
-in metres apart, and a Stribeck velocity is undefined without a Stribeck torque."""
+in metres apart, and a Stribeck velocity is undefined without a Stribeck torque (the gearbox's
+rest factor trades against its velocity)."""
 
 
 def score_case(truth: dict, result: Diagnosis) -> dict:

@@ -45,6 +45,8 @@ class DiagnoseConfig:
         later_base_partners: the bases after the best one screen only this many of the best
             single effects on top of them (the best base screens every one): it keeps a
             30 s, 12-joint log within two minutes.
+        refine_top: an effect that nests a simpler one (gearbox friction nests load friction)
+            is fitted only where that one is among this many best single effects.
         penalty: per extra parameter, the relative increase of the squared held-out gap a
             candidate is charged in the ranking.
         none_factor: a held-out gap below none_factor x the noise floor means "none".
@@ -70,6 +72,7 @@ class DiagnoseConfig:
     pairs: int = 3
     screen_iter: int = 3
     later_base_partners: int = 8
+    refine_top: int = 3
     penalty: float = 0.02
     none_factor: float = 1.5
     explained_factor: float = 1.6
@@ -255,12 +258,17 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
     skipped: list[dict[str, str]] = []
-    for effect in tqdm(effects, desc="fit effects", disable=not cfg.show_progress, leave=False):
+    for effect in tqdm([e for e in effects if e.refines is None], desc="fit effects", disable=not cfg.show_progress,
+                       leave=False):
         try:
             candidates.append(_fit(fitter, Combo((effect,), tr_train[0])))
         except CannotApply as err:  # one candidate that cannot act on this log ends nothing else
             skipped.append({"effect": effect.label, "reason": str(err)})
     _evaluate(rep_test, candidates)
+    refined = _refinements([e for e in effects if e.refines is not None], candidates, tr_train[0], fitter, cfg,
+                           skipped)
+    _evaluate(rep_test, refined)
+    candidates += refined
     combined = _forward_pairs(candidates, tr_train[0], fitter, rep_test, cfg, floor_j, focus)
     mixture = _per_joint_mixture(candidates, tr_train[0], fitter) if len(names) > 1 else None
     combined += [mixture] if mixture is not None else []
@@ -365,6 +373,28 @@ def _evaluate(rep: Replayer, cands: list[Candidate]) -> None:
             c.heldout_per_joint = np.sqrt(np.sum(rc**2, axis=(0, 1)) / rep.mask.sum())
 
 
+def _refinements(effects: list[Effect], singles: list[Candidate], ref: Trajectory, fitter: Fitter,
+                 cfg: DiagnoseConfig, skipped: list[dict[str, str]]) -> list[Candidate]:
+    """Fits of the effects that nest a simpler one (:attr:`Effect.refines`), each only where
+    that simpler effect, in the same scope, is among the ``cfg.refine_top`` best singles
+    (held-out gap), and from its fit: a richer form of an effect that does not help
+    does not help either, and its fit costs many times the simpler one's. The others go to
+    ``skipped`` with the reason."""
+    ranked = sorted(singles, key=lambda c: c.heldout_gap)
+    out = []
+    for effect in effects:
+        simple = next(((rank, c) for rank, c in enumerate(ranked) if c.combo.effects[0].name == effect.refines
+                       and c.combo.effects[0].joints == effect.joints
+                       and c.combo.effects[0].per_joint == effect.per_joint), None)
+        if simple is None or simple[0] >= cfg.refine_top:
+            where = "was not fitted" if simple is None else f"ranks {simple[0] + 1} of {len(ranked)}"
+            skipped.append({"effect": effect.label,
+                            "reason": f"not refined: its simpler form {effect.refines} {where}"})
+            continue
+        out.append(_fit(fitter, Combo((effect,), ref), effect.nested_starts(simple[1].x, ref)))
+    return out
+
+
 def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
                    cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
     """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
@@ -394,7 +424,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
         worst = names[int(np.argmax(base.heldout_per_joint**2 - floor_j**2))] if len(names) > 1 else focus
         if worst != focus:
             partners += [(e, None) for e in library(ref, focus=worst, families=cfg.families or None)
-                         if e.joints == (worst,) and not e.per_joint]
+                         if e.joints == (worst,) and not e.per_joint and e.refines is None]
         for effect, start in partners:
             key = frozenset((base.combo.label, effect.label))
             if effect.family == base.combo.family or key in seen:

@@ -15,8 +15,8 @@ an open-loop replay and cannot be told apart from position logs.
 
 The effects by what they change: :mod:`~crisp_gym.sim2real.effects.signals` (delays, backlash, encoder
 bias), :mod:`~crisp_gym.sim2real.effects.joints` (friction, damping, armature, gains, saturation),
-:mod:`~crisp_gym.sim2real.effects.loads` (mass, centre of mass, load-dependent and Stribeck
-friction) and :mod:`~crisp_gym.sim2real.effects.ground`; what they share is
+:mod:`~crisp_gym.sim2real.effects.loads` (mass, centre of mass, payload, load-dependent, gearbox and
+Stribeck friction) and :mod:`~crisp_gym.sim2real.effects.ground`; what they share is
 :mod:`~crisp_gym.sim2real.effects.base`. This module lists them (:data:`EFFECT_TYPES`) and makes the
 candidates for a log (:func:`library`).
 """
@@ -47,12 +47,14 @@ from crisp_gym.sim2real.effects.ground import (
 from crisp_gym.sim2real.effects.joints import Armature, CoulombFriction, GainScale, TorqueSaturation, ViscousDamping
 from crisp_gym.sim2real.effects.loads import (
     ComShift,
+    GearboxFriction,
     LoadFriction,
     MassScale,
     Payload,
     StribeckFriction,
     actuator_torque,
     add_point_mass,
+    external_torque,
     lever_scale,
     release_inertial_frame,
 )
@@ -60,19 +62,20 @@ from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderB
 from crisp_gym.sim2real.replay import Trajectory
 
 __all__ = [
-    "EFFECT_TYPES", "FAMILIES", "SUPPORT_POSTURES", "ActuatorDelay", "Armature", "Backlash", "CannotApply", "ComShift",
-    "ContactSoftness", "CoulombFriction", "Effect", "EncoderBias", "GainScale", "GroundFriction", "GroundHeight",
-    "GroundTilt", "LoadFriction", "MassScale", "Param", "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox",
-    "TorqueSaturation", "ViscousDamping", "actuator_torque", "add_point_mass", "check_families", "ground_geoms", "ground_top",
-    "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale",
-    "support_points", "torque_scale",
+    "EFFECT_TYPES", "FAMILIES", "SUPPORT_POSTURES", "ActuatorDelay", "Armature", "Backlash", "CannotApply",
+    "ComShift", "ContactSoftness", "CoulombFriction", "Effect", "EncoderBias", "GainScale", "GearboxFriction",
+    "GroundFriction", "GroundHeight", "GroundTilt", "LoadFriction", "MassScale", "Param", "Payload", "SensorDelay",
+    "Signals", "StribeckFriction", "SupportBox", "TorqueSaturation", "ViscousDamping", "actuator_torque",
+    "add_point_mass", "check_families", "external_torque", "ground_geoms", "ground_top", "inertia_scale",
+    "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale", "support_points",
+    "torque_scale",
 ]
 
 
 EFFECT_TYPES: tuple[type[Effect], ...] = (
     ActuatorDelay, SensorDelay, CoulombFriction, ViscousDamping, Armature, GainScale, TorqueSaturation,
-    Backlash, EncoderBias, MassScale, ComShift, Payload, LoadFriction, StribeckFriction, GroundFriction,
-    ContactSoftness, GroundHeight, GroundTilt, SupportBox,
+    Backlash, EncoderBias, MassScale, ComShift, Payload, LoadFriction, GearboxFriction, StribeckFriction,
+    GroundFriction, ContactSoftness, GroundHeight, GroundTilt, SupportBox,
 )
 """Every effect of the library, in the order the report lists them."""
 

@@ -47,7 +47,9 @@ class Effect:
     Scopes: every effect is tried shared by all joints; on multi-joint logs also with one
     parameter per joint (``per_joint_allowed``) and confined to the joint with the largest
     gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
-    points the fit descends from, for effects with several local minima.
+    points the fit descends from, for effects with several local minima. ``refines``: the
+    name of a simpler effect this one contains as a special case; the diagnosis fits it only
+    where that one, in the same scope, ranks among the best, from :meth:`nested_starts`.
     """
 
     name = "effect"
@@ -58,6 +60,7 @@ class Effect:
     per_joint_allowed = True
     focus_allowed = False
     refine = 1  # how many of the best start points are descended from (several local minima)
+    refines: str | None = None  # the simpler effect this one nests (fitted only where that one ranks well)
 
     def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
         self.joints = joints
@@ -104,6 +107,10 @@ class Effect:
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
         """Multi-start points for non-convex fits (default: the start value only)."""
         return [np.array([p.x0 for p in self.params(tr)])]
+
+    def nested_starts(self, simple: np.ndarray, tr: Trajectory) -> list[np.ndarray]:
+        """Start points from the fit of the simpler effect this one ``refines``."""
+        raise NotImplementedError
 
     def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
         """Change a private copy of the model in place."""

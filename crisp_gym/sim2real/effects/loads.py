@@ -1,5 +1,6 @@
-"""Effects of the load the joints carry: mass scale, a shifted centre of mass, and dry friction that
-grows with the load (load-dependent) or falls with speed (Stribeck)."""
+"""Effects of the load the joints carry: mass scale, a shifted centre of mass, a payload, and dry
+friction that grows with the load (load-dependent, with BAM's directional and Stribeck load terms)
+or falls with speed (Stribeck)."""
 
 from __future__ import annotations
 
@@ -201,6 +202,65 @@ class LoadFriction(Effect):
         cols = self.columns(tr)
         out = np.zeros(qpos.shape)
         out[:, cols] = self.values(x, tr) * np.abs(actuator_torque(model, tr, cols, ctrl, enabled, qpos, qvel))
+        return out
+
+
+def external_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, qpos: np.ndarray,
+                    qvel: np.ndarray) -> np.ndarray:
+    """(k, len(cols)) torque that gravity and the motion's velocity products put on each target
+    joint at the given states (minus MuJoCo's bias force; joints outside the log at their
+    ``qpos0``, at rest): the load the gear train holds against, contact forces aside."""
+    data = mujoco.MjData(model)
+    bias = np.empty(model.nv)
+    dofs = tr.dadr[cols]
+    out = np.empty((len(qpos), len(cols)))
+    for i, (q, v) in enumerate(zip(qpos, qvel)):
+        data.qpos[tr.qadr], data.qvel[tr.dadr] = q, v
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        mujoco.mj_comVel(model, data)
+        mujoco.mj_rne(model, data, 0, bias)
+        out[i] = -bias[dofs]
+    return out
+
+
+class GearboxFriction(Effect):
+    """BAM's directional, Stribeck load-dependent gear friction (its M4/M5 models): dry
+    friction ``|motor x tau_m - external x tau_e| x (1 + rest x exp(-(v / velocity)^2))``,
+    with ``tau_m`` the actuator torque and ``tau_e`` the torque gravity and the motion put on
+    the joint (:func:`external_torque`). A gear mesh rubs in proportion to the torque it
+    carries, with one coefficient when the motor drives the load and another when the load
+    drives it (gear efficiency differs by direction), and it sticks harder at rest.
+    ``external = rest = 0`` is :class:`LoadFriction`, hence the same family."""
+
+    name, family, refines = "gearbox_friction", "load_friction", "load_friction"
+    state_friction, per_joint_allowed, focus_allowed = True, False, True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        vs = float(speed_scale(tr)[self.columns(tr)].max())
+        return [Param("motor", 0.0, 0.0, 0.95, 0.005, "N·m per N·m"),
+                Param("external", 0.0, 0.0, 0.95, 0.005, "N·m per N·m"),
+                Param("rest", 0.0, 0.0, 4.0, 0.02, ""),
+                Param("velocity", 0.2 * vs, 0.02 * vs, 2 * vs, 0.005 * vs, "rad/s")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        vs = float(speed_scale(tr)[self.columns(tr)].max())
+        return [np.array([m, e, r, 0.2 * vs]) for m, e in ((0.1, 0.05), (0.3, 0.15)) for r in (0.0, 1.0)]
+
+    def nested_starts(self, simple: np.ndarray, tr: Trajectory) -> list[np.ndarray]:
+        """From load friction's ``mu``: all of it on the motor side, or part of it moved to the
+        load side and to rest."""
+        vs = float(speed_scale(tr)[self.columns(tr)].max())
+        mu = float(simple[0])
+        return [np.array([mu, 0.0, 0.0, 0.2 * vs]), np.array([0.7 * mu, 0.3 * mu, 1.0, 0.2 * vs])]
+
+    def friction(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, enabled: np.ndarray,
+                 qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        cols = self.columns(tr)
+        carried = np.abs(x[0] * actuator_torque(model, tr, cols, ctrl, enabled, qpos, qvel)
+                         - x[1] * external_torque(model, tr, cols, qpos, qvel))
+        out = np.zeros(qpos.shape)
+        out[:, cols] = carried * (1.0 + x[2] * np.exp(-(qvel[:, cols] / x[3]) ** 2))
         return out
 
 
