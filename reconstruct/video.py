@@ -401,11 +401,21 @@ def settle(landmarks: np.ndarray, first: Motion, seats: list[Seat], cfg: VideoCo
     return motion, seat_gaps(motion, seats) if seats else np.zeros(0)
 
 
-def _passed_through(box: Box, body_points: np.ndarray, margin: float = 0.02) -> bool:
-    """Whether any of the motion's ``body_points`` (joints and soles, (N, 3)) lies inside ``box``:
-    a level top the person walked through is a slice of a slope or a bush, not a surface."""
-    local = np.abs((body_points - box.center) @ box.rotation)
-    return bool(np.any(np.all(local <= box.half_size - margin, axis=1)))
+def _passed_through(box: Box, body_pos: np.ndarray, soles: np.ndarray, margin: float = 0.02) -> bool:
+    """Whether the person went through ``box``: a joint or sole point inside it, or, in some frame,
+    a sole inside its footprint and under its top while both knees are above it (the shins cross
+    a slab a few centimetres thick, which no point lands in). ``body_pos`` (T, 24, 3) are the
+    joints, ``soles`` (T, 4, 3) the sole corners. A level top the person walked through is a slice
+    of a slope or a bush, not a surface."""
+    points = np.concatenate([body_pos, soles], axis=1)
+    local = (points - box.center) @ box.rotation
+    if np.any(np.all(np.abs(local) <= box.half_size - margin, axis=-1)):
+        return True
+    top = box.top_height()
+    sole_local = local[:, body_pos.shape[1]:]
+    under = np.all(np.abs(sole_local[..., :2]) <= box.half_size[:2] - margin, axis=-1) & (soles[..., 2] < top - margin)
+    knees = body_pos[:, [BODY_NAMES.index("L_Knee"), BODY_NAMES.index("R_Knee")], 2].min(axis=1)
+    return bool(np.any(under.any(axis=1) & (knees > top + margin)))
 
 
 def _overlapping(contacts: list) -> list[list]:
@@ -563,8 +573,8 @@ def reconstruct_video(frames: np.ndarray, fps: float, config: VideoConfig | None
     seat_records = [{"bodies": list(s.bodies), "frames": [s.start, s.stop], "seat_top": round(s.top, 3),
                      "underside_above_seat": round(float(g), 3)} for s, g in zip(found, gaps)]
     body_pos = compute_kinematics(motion, model).body_pos
-    body_points = np.concatenate([body_pos, sole_points(model, motion.qpos())], axis=1).reshape(-1, 3)
-    tops = [b for b in level_tops(points, body_pos[:, 0], cfg.planes) if not _passed_through(b, body_points)]
+    soles = sole_points(model, motion.qpos())
+    tops = [b for b in level_tops(points, body_pos[:, 0], cfg.planes) if not _passed_through(b, body_pos, soles)]
     boxes = [ground_box(points, body_pos[:, 0], cfg.planes), *tops, *(s.box for s in found)]
     timings["motion_and_planes"] = time.perf_counter() - start
 

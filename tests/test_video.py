@@ -376,3 +376,26 @@ def test_upright_makes_the_standing_trunk_vertical():
     fixed, angle = upright(leaning, hip_share=0.85)
     assert angle == pytest.approx(8.0, abs=1e-6)
     np.testing.assert_allclose(fixed, points, atol=1e-9)
+
+
+@pytest.mark.parametrize("top, near, passed", [(0.25, True, True), (0.70, True, False), (0.25, False, False)])
+def test_a_level_top_the_shins_cross_is_walked_through(top, near, passed):
+    """A slab a few centimetres thick that the walk's shins cross holds no joint or sole point, yet
+    the person walked through it (a slice of a slope or a bush); a table top above the knees, or a
+    slab away from the walk, is a surface."""
+    from crisp_gym.humanoid import build_humanoid
+    from crisp_gym.metrics import sole_points
+    from crisp_gym.motion import compute_kinematics
+    from crisp_gym.reconstruct.video import _passed_through
+    from crisp_gym.registry import load_clip
+    from crisp_gym.scene import Box
+
+    model = build_humanoid()
+    motion = load_clip("flat_walk").motion
+    body_pos = compute_kinematics(motion, model).body_pos
+    soles = sole_points(model, motion.qpos())
+    middle = body_pos[motion.num_frames // 2, 0, :2] + (0.0 if near else 3.0)
+    slab = Box(center=[*middle, top - 0.02], half_size=[0.4, 0.4, 0.02])
+    local = np.abs(np.concatenate([body_pos, soles], axis=1) - slab.center)
+    assert not np.any(np.all(local <= slab.half_size - 0.02, axis=-1))  # no point lands in the slab itself
+    assert _passed_through(slab, body_pos, soles) is passed
