@@ -206,11 +206,12 @@ class LoadFriction(Effect):
 
 
 def external_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, qpos: np.ndarray,
-                    qvel: np.ndarray) -> np.ndarray:
+                    qvel: np.ndarray, data: mujoco.MjData | None = None) -> np.ndarray:
     """(k, len(cols)) torque that gravity and the motion's velocity products put on each target
     joint at the given states (minus MuJoCo's bias force; joints outside the log at their
-    ``qpos0``, at rest): the load the gear train holds against, contact forces aside."""
-    data = mujoco.MjData(model)
+    ``qpos0``, at rest): the load the gear train holds against, contact forces aside. ``data``:
+    scratch data of ``model`` whose unlogged joints are at ``qpos0`` and at rest (made if not given)."""
+    data = mujoco.MjData(model) if data is None else data
     bias = np.empty(model.nv)
     dofs = tr.dadr[cols]
     out = np.empty((len(qpos), len(cols)))
@@ -236,6 +237,16 @@ class GearboxFriction(Effect):
     name, family, refines = "gearbox_friction", "load_friction", "load_friction"
     state_friction, per_joint_allowed, focus_allowed = True, False, True
 
+    def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
+        super().__init__(joints, per_joint)
+        # Replays ask for the friction one sample at a time; making MjData costs more than the step.
+        self._scratch: tuple[mujoco.MjModel, mujoco.MjData] | None = None
+
+    def _data(self, model: mujoco.MjModel) -> mujoco.MjData:
+        if self._scratch is None or self._scratch[0] is not model:
+            self._scratch = (model, mujoco.MjData(model))
+        return self._scratch[1]
+
     def params(self, tr: Trajectory) -> list[Param]:
         vs = float(speed_scale(tr)[self.columns(tr)].max())
         return [Param("motor", 0.0, 0.0, 0.95, 0.005, "N·m per N·m"),
@@ -258,7 +269,7 @@ class GearboxFriction(Effect):
                  qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
         cols = self.columns(tr)
         carried = np.abs(x[0] * actuator_torque(model, tr, cols, ctrl, enabled, qpos, qvel)
-                         - x[1] * external_torque(model, tr, cols, qpos, qvel))
+                         - x[1] * external_torque(model, tr, cols, qpos, qvel, self._data(model)))
         out = np.zeros(qpos.shape)
         out[:, cols] = carried * (1.0 + x[2] * np.exp(-(qvel[:, cols] / x[3]) ** 2))
         return out
