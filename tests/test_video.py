@@ -16,6 +16,7 @@ import pytest
 
 import crisp_gym  # noqa: F401 - registers CrispTrack-v0
 from crisp_gym import cli
+from crisp_gym.geometry import look_at
 from crisp_gym.reconstruct import person
 from crisp_gym.reconstruct.body_scale import ground_metrology, implied_stature, stature_factor
 from crisp_gym.reconstruct.io import is_plain_video, read_video
@@ -112,18 +113,6 @@ def _standing_person(frames: int, pelvis_xy: np.ndarray) -> np.ndarray:
     return points
 
 
-def _camera(position: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV camera-to-world looking from ``position`` at ``target`` (world z up)."""
-    forward = (target - position) / np.linalg.norm(target - position)
-    right = np.cross(forward, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([right, down, forward], axis=1)
-    c2w[:3, 3] = position
-    return c2w
-
-
 def test_scale_and_floor_from_known_geometry():
     """A floor grid seen by a moving camera, in SfM units 1/s of the metric ones, and a person
     standing on it: the scale comes back as s, the floor as z = 0 with gravity up."""
@@ -132,7 +121,7 @@ def test_scale_and_floor_from_known_geometry():
     ground = np.c_[rng.uniform(-3, 3, (3000, 2)) + [3.0, 0.0], np.zeros(3000)]
     person_xy = np.array([3.0, 0.0])
     world = _standing_person(frames, person_xy)
-    c2w = np.stack([_camera(np.array([0.0, 0.1 * k, 1.5]), np.array([3.0, 0.0, 0.5])) for k in range(frames)])
+    c2w = np.stack([look_at(np.array([0.0, 0.1 * k, 1.5]), np.array([3.0, 0.0, 0.5])) for k in range(frames)])
     intrinsic = _pinhole()
     in_camera = np.einsum("tba,tjb->tja", c2w[:, :3, :3], world - c2w[:, None, :3, 3])
     pixels = in_camera @ intrinsic.T
@@ -178,7 +167,7 @@ def test_ground_metrology_measures_the_scene_against_the_body():
     person_xy = np.c_[np.linspace(2.5, 3.5, frames), np.linspace(-0.3, 0.3, frames)]
     world = _standing_person(frames, person_xy)
     world[1::2, landmark("left_heel"), 2] += 0.1  # a swinging foot: the lowest one is on the floor
-    c2w = np.stack([_camera(np.array([0.0, 0.02 * k, 1.5]), np.array([3.0, 0.0, 0.6])) for k in range(frames)])
+    c2w = np.stack([look_at(np.array([0.0, 0.02 * k, 1.5]), np.array([3.0, 0.0, 0.6])) for k in range(frames)])
     intrinsic = _pinhole()
     track = _seen_person(c2w, world, intrinsic)
     right = ground_metrology(track.image, world, np.array([landmark(n) for n in FEET]), c2w, intrinsic)
@@ -197,7 +186,7 @@ def test_a_focal_length_bundle_adjustment_got_wrong_leaves_the_scale():
     rng = np.random.default_rng(0)
     s_true, frames = 0.01, 12
     world = _standing_person(frames, np.c_[np.linspace(2.5, 3.5, frames), np.linspace(-0.3, 0.3, frames)])
-    first = _camera(np.array([0.0, 0.0, 1.5]), np.array([3.0, 0.0, 0.6]))
+    first = look_at(np.array([0.0, 0.0, 1.5]), np.array([3.0, 0.0, 0.6]))
     c2w = np.tile(first, (frames, 1, 1))
     c2w[:, :3, 3] += np.arange(frames)[:, None] * 0.01 * first[:3, 0]  # sideways: pixels survive the stretch
     track = _seen_person(c2w, world, _pinhole())
