@@ -11,16 +11,21 @@ Measured in one run on the same model:
   actions: the PD reference) fall within about a second and make more contacts, so each of its
   physics steps costs more (about 15 % on ``flat_walk``) and the first ratio counts that as env
   overhead. The second counts only what the env adds to its own physics;
+* with ``--policy``, the batched env driven by a trained policy instead (the states training
+  sees once a policy tracks: humanoids upright, as in the raw batch); only ``env.step`` is
+  timed, not the policy's inference;
 * a single env, and gymnasium's ``SyncVectorEnv`` over single envs, for comparison.
 
     python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip flat_walk
     python benchmarks/env_fps.py --num-envs 64 --threads 2 --clip bundled   # the motion library
+    python benchmarks/env_fps.py --clip flat_walk --policy assets/policies/flat_walk
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import gymnasium as gym
 import mujoco
@@ -41,6 +46,8 @@ class Args:
     seconds: float = 5.0
     scene_aware: bool = False
     seed: int = 0
+    policy: Path | None = None
+    """also time the env driven by this trained policy (run directory, checkpoint or policy file)"""
 
 
 def _rate(step, seconds: float) -> float:
@@ -72,6 +79,29 @@ def _time_batch_calls(batch: mujoco.batch.Batch) -> dict:
         setattr(batch, name, timed)
     timer["wall"] = lambda: time.perf_counter() - start
     return timer
+
+
+def _policy_rate(venv: CrispTrackVectorEnv, policy_path: Path, seconds: float, seed: int) -> float:
+    """Env-steps/s of ``venv.step`` alone while a trained policy picks the actions."""
+    from crisp_gym.policy.files import load_actor
+    from crisp_gym.train.rollouts import torch_policy
+
+    loaded = load_actor(policy_path)
+    if loaded.scene_aware != venv.config.scene_aware:
+        raise SystemExit(f"{policy_path} is {'scene-aware' if loaded.scene_aware else 'scene-blind'}: "
+                         f"pass {'--scene-aware' if loaded.scene_aware else '--no-scene-aware'}")
+    act = torch_policy(loaded.actor, loaded.scene_aware)
+    obs, _ = venv.reset(seed=seed)
+    for _ in range(3):
+        obs = venv.step(act(obs))[0]
+    stepped, count, start = 0.0, 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        actions = act(obs)
+        tic = time.perf_counter()
+        obs = venv.step(actions)[0]
+        stepped += time.perf_counter() - tic
+        count += 1
+    return count * venv.num_envs / stepped
 
 
 def main(args: Args) -> dict[str, float]:
@@ -108,6 +138,9 @@ def main(args: Args) -> dict[str, float]:
     results["batched_env_steps_per_s"] = _rate(lambda: venv.step(zero), args.seconds) * args.num_envs
     results["ratio_batched_to_raw"] = results["batched_env_steps_per_s"] / raw_rate
     results["ratio_env_physics_to_env"] = physics["seconds"] / physics["wall"]()
+    if args.policy is not None:
+        results["policy_env_steps_per_s"] = _policy_rate(venv, args.policy, args.seconds, args.seed)
+        results["ratio_policy_to_raw"] = results["policy_env_steps_per_s"] / raw_rate
 
     single = gym.make("CrispTrack-v0", clip=list(args.clip), scene_aware=args.scene_aware)
     single.reset(seed=args.seed)
@@ -131,12 +164,15 @@ def main(args: Args) -> dict[str, float]:
     print(f"\nCrispTrack-v0 on {', '.join(venv.task.clip_names)}, {args.num_envs} envs, {args.threads} threads, "
           f"{substeps} substeps, scene_aware={args.scene_aware}\n")
     print("| what | env-steps/s |\n|---|---|")
-    for key in ("raw_physics_env_steps_per_s", "batched_env_steps_per_s", "single_env_steps_per_s",
-                "sync_vector_env_steps_per_s"):
-        print(f"| {key} | {results[key]:,.0f} |")
+    for key in ("raw_physics_env_steps_per_s", "batched_env_steps_per_s", "policy_env_steps_per_s",
+                "single_env_steps_per_s", "sync_vector_env_steps_per_s"):
+        if key in results:
+            print(f"| {key} | {results[key]:,.0f} |")
     print(f"| ratio batched / raw | {results['ratio_batched_to_raw']:.3f} |")
     print(f"| ratio on the env's own states: physics time / env step time | "
           f"{results['ratio_env_physics_to_env']:.3f} |")
+    if "ratio_policy_to_raw" in results:
+        print(f"| ratio batched, policy actions / raw | {results['ratio_policy_to_raw']:.3f} |")
     return results
 
 

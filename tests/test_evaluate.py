@@ -135,6 +135,37 @@ def test_rsi_start_frames_are_seeded(clip_dir: Path) -> None:  # noqa: F811
     assert a.fps > 0
 
 
+def test_failure_clusters_group_nearby_ends() -> None:
+    from crisp_gym.train.rollouts import failure_clusters
+
+    ends = np.array([57, 58, 58, 81, 80, 120, 182, 182, 183, 182, 248, 248])
+    failed = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0], dtype=bool)
+    assert failure_clusters(ends, failed) == [
+        {"first_frame": 182, "last_frame": 183, "episodes": 4},
+        {"first_frame": 57, "last_frame": 58, "episodes": 3},
+        {"first_frame": 80, "last_frame": 81, "episodes": 2},
+    ]  # the lone failure at 120 and the successes are no cluster
+    assert failure_clusters(ends, np.zeros(len(ends), dtype=bool)) == []
+    # a gap of exactly `gap` frames joins, one more splits
+    assert failure_clusters(np.array([10, 13, 17]), np.ones(3, dtype=bool), min_episodes=1) == [
+        {"first_frame": 10, "last_frame": 13, "episodes": 2}, {"first_frame": 17, "last_frame": 17, "episodes": 1}]
+
+
+def test_start_sweep_matches_single_starts(clip_dir: Path) -> None:  # noqa: F811
+    """Each sweep episode is the episode from that start alone, and starts cover the clip."""
+    from crisp_gym.train.evaluate import start_sweep
+
+    entry, sweep = start_sweep(zero_policy, clip_dir, 20, 90)
+    assert entry["start_frames"] == [0, 20, 40, 60, 80]
+    for start, end, ok in zip(entry["start_frames"], entry["end_frames"], entry["success"]):
+        alone = evaluate(zero_policy, clip_dir, [start])
+        assert end == start + alone.lengths[0] and ok == bool(alone.success[0])
+        assert start < end <= 89 and ok == (end == 89)
+    assert entry["success_rate"] == pytest.approx(np.mean(entry["success"]))
+    with pytest.raises(ValueError, match="start-every"):
+        start_sweep(zero_policy, clip_dir, 0, 90)
+
+
 def test_rendered_rollout(clip_dir: Path) -> None:  # noqa: F811
     rollout = record_rollout(zero_policy, clip_dir, 80, render=True, progress=False, render_width=64,
                              render_height=48)
@@ -188,10 +219,18 @@ def test_cli_writes_report_and_plots(untrained_run: Path, clip_dir: Path, tmp_pa
         assert np.isfinite(full[key]) and full[key] >= 0.0, key
     assert report["training"]["frames"] == 512
     assert (out / "tracking.png").stat().st_size > 0 and (out / "torques.png").stat().st_size > 0
-    assert not (out / "rollout.mp4").exists()
+    assert not (out / "rollout.mp4").exists() and not (out / "starts.png").exists()
     assert not list(out.glob("*.tmp*"))
     with pytest.raises(ValueError, match="episodes"):
         main([str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--episodes", "0"])
+    with pytest.raises(ValueError, match="start-every"):
+        main([str(untrained_run), "--clip", str(clip_dir), "-o", str(out), "--start-every", "-1"])
+    swept = tmp_path / "swept"
+    assert main([str(untrained_run), "--clip", str(clip_dir), "-o", str(swept), "--episodes", "2", "--no-video",
+                 "--start-every", "30"]) == 0
+    sweep = json.loads((swept / "report.json").read_text())["start_sweep"]
+    assert sweep["start_frames"] == [0, 30, 60] and len(sweep["end_frames"]) == 3
+    assert (swept / "starts.png").stat().st_size > 0 and "starts.png" in (swept / "report.html").read_text()
 
 
 def test_demo_reports_policy_and_pd_reference(untrained_run: Path, clip_dir: Path, tmp_path: Path) -> None:  # noqa: F811

@@ -195,7 +195,7 @@ def test_pd_targets(ref, rng, residual):
 
 
 def test_pd_targets_velocity_feedforward(ref, rng):
-    cfg = TrackConfig(action_scale=0.4, velocity_feedforward=True)
+    cfg = TrackConfig(action_scale=0.4, velocity_feedforward=True, max_feedforward_lead=1e6)
     lead = rng.uniform(0.05, 0.2, 69)
     action = rng.uniform(-1.0, 1.0, (N, 69))
     frame = rng.integers(0, T, N)
@@ -205,6 +205,25 @@ def test_pd_targets_velocity_feedforward(ref, rng):
         np.testing.assert_allclose(got[n] - plain[n], lead * ref.qvel[frame[n], 6:], **TOL)
     with pytest.raises(ValueError, match="damping lead"):
         tracking.pd_targets(action, ref, frame, cfg, np.zeros((69, 2)))
+
+
+def test_pd_targets_feedforward_lead_is_clipped(ref, rng):
+    """Each hinge's lead is its unclipped lead limited to ±max_feedforward_lead: equal where it
+    is smaller, the limit with the lead's sign where it is larger."""
+    limit = 0.05
+    cfg = TrackConfig(velocity_feedforward=True, max_feedforward_lead=limit)
+    lead = rng.uniform(0.05, 0.2, 69)
+    action = rng.uniform(-1.0, 1.0, (N, 69))
+    frame = rng.integers(0, T, N)
+    led = tracking.pd_targets(action, ref, frame, cfg, np.zeros((69, 2)), lead) - \
+        tracking.pd_targets(action, ref, frame, dataclasses.replace(cfg, velocity_feedforward=False), None)
+    free = lead * ref.qvel[frame, 6:]
+    small = np.abs(free) <= limit
+    assert small.any() and (~small).any()  # the draw exercises both sides of the limit
+    np.testing.assert_allclose(led[small], free[small], **TOL)
+    np.testing.assert_allclose(led[~small], limit * np.sign(free[~small]), **TOL)
+    with pytest.raises(ValueError, match="max_feedforward_lead"):
+        TrackConfig(max_feedforward_lead=0.0)
 
 
 def test_damping_lead_cancels_a_servos_lag():

@@ -7,7 +7,11 @@ rolls the policy's mean action (no exploration noise) out in ``CrispTrack-v0`` t
   training (reference state init: 10 % frame 0, else uniform); the success rate and the
   rollout throughput (FPS, env-steps per second including the policy) come from these;
 * **from frame 0**: one episode over the whole clip in the single env (deterministic, so one
-  is enough). The tracking metrics, the plots and the video come from it.
+  is enough). The tracking metrics, the plots and the video come from it;
+* with ``--start-every K``, a **start sweep**: one episode from each of frames 0, K, 2K, …
+  (batched); ``starts.png`` plots where each ended against where it started, and the report's
+  ``start_sweep.failure_clusters`` lists the frames where failed episodes pile up: the parts
+  of the clip no start gets through (a fast kick, a rise from a seat), whatever led there.
 
 Metrics (paper, Sec. 4, after WHAM/TRAM), over the 24 body origins (the joints) of the
 simulated humanoid against the reference (positions in metres, errors in millimetres):
@@ -27,7 +31,8 @@ and the plots :mod:`crisp_gym.train.plots`; this module writes the outputs and i
 
 Outputs in ``-o``: ``report.html`` (the page to open), ``report.json``, ``tracking.png``
 (largest body error and reward terms over time), ``torques.png`` (actuator torques by body
-group) and ``rollout.mp4`` (the simulated humanoid with its reference as a green ghost).
+group), ``rollout.mp4`` (the simulated humanoid with its reference as a green ghost) and, with
+``--start-every``, ``starts.png``.
 """
 
 from __future__ import annotations
@@ -43,8 +48,16 @@ import tyro
 
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.html_report import Section, rows_from, write_html_report
-from crisp_gym.train.plots import plot_torques, plot_tracking
-from crisp_gym.train.rollouts import Policy, Rollout, evaluate, record_rollout, torch_policy
+from crisp_gym.train.plots import plot_start_sweep, plot_torques, plot_tracking
+from crisp_gym.train.rollouts import (
+    EvalResult,
+    Policy,
+    Rollout,
+    evaluate,
+    failure_clusters,
+    record_rollout,
+    torch_policy,
+)
 
 
 def write_video(images: list[np.ndarray], fps: float, path: Path) -> None:
@@ -72,6 +85,9 @@ class EvalArgs:
         video: render rollout.mp4 of the frame-0 episode (needs headless OpenGL: EGL or OSMesa).
         seed: seed of the RSI start frames.
         device: torch device of the policy.
+        start_every: also roll out one episode from every K-th frame (0, K, 2K, …) and plot
+            where each ended (starts.png): where failures pile up is what the policy cannot get
+            through (0: no sweep).
     """
 
     policy: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="RUN_OR_CHECKPOINT")]
@@ -81,6 +97,7 @@ class EvalArgs:
     video: bool = True
     seed: int = 0
     device: str = "cpu"
+    start_every: int = 0
 
 
 def evaluate_policy(policy: Policy, clip: str | os.PathLike, *, episodes: int = 100, seed: int = 0,
@@ -90,6 +107,7 @@ def evaluate_policy(policy: Policy, clip: str | os.PathLike, *, episodes: int = 
 
     Returns the report entries and the frame-0 rollout (with its images when ``render``);
     ``env_kwargs`` are further ``CrispTrack-v0`` options (as the policy was trained with).
+    See :func:`start_sweep` for episodes from every K-th frame.
     """
     rsi = evaluate(policy, clip, episodes, scene_aware=scene_aware, seed=seed, **env_kwargs)
     rollout = record_rollout(policy, clip, 0, render=render, scene_aware=scene_aware, progress=progress,
@@ -103,13 +121,33 @@ def evaluate_policy(policy: Policy, clip: str | os.PathLike, *, episodes: int = 
     return report, rollout
 
 
-def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title: str) -> list[str]:
-    """report.json, tracking.png, torques.png, (with images) rollout.mp4 and report.html, the page
-    that shows them, in ``output``."""
+def start_sweep(policy: Policy, clip: str | os.PathLike, every: int, num_frames: int, *,
+                scene_aware: bool = False, **env_kwargs: Any) -> tuple[dict[str, Any], EvalResult]:
+    """One episode from each of frames 0, ``every``, 2·``every``, … of a ``num_frames`` clip.
+
+    Returns the report entry (start and end frames, success, :func:`failure_clusters`) and the
+    episodes.
+    """
+    if every < 1:
+        raise ValueError(f"--start-every must be at least 1, got {every}")
+    sweep = evaluate(policy, clip, np.arange(0, num_frames - 1, every), scene_aware=scene_aware, **env_kwargs)
+    entry = {"every": every, "start_frames": sweep.start_frames.tolist(), "end_frames": sweep.end_frames.tolist(),
+             "success": sweep.success.tolist(), "success_rate": sweep.success_rate,
+             "failure_clusters": failure_clusters(sweep.end_frames, ~sweep.success)}
+    return entry, sweep
+
+
+def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title: str,
+                  sweep: EvalResult | None = None) -> list[str]:
+    """report.json, tracking.png, torques.png, (with images) rollout.mp4, (with a start sweep)
+    starts.png and report.html, the page that shows them, in ``output``."""
     output.mkdir(parents=True, exist_ok=True)
     plot_tracking(rollout, output / "tracking.png", title)
     plot_torques(rollout, output / "torques.png", title)
     written = ["report.json", "tracking.png", "torques.png"]
+    if sweep is not None:
+        plot_start_sweep(sweep, rollout.num_frames - 1, output / "starts.png", f"{title}: where episodes end")
+        written.append("starts.png")
     if rollout.images:
         write_video(rollout.images, rollout.control_hz, output / "rollout.mp4")
         written.append("rollout.mp4")
@@ -117,6 +155,7 @@ def write_outputs(rollout: Rollout, report: dict[str, Any], output: Path, title:
     write_html_report(output / "report.html", title, [
         Section("Summary", rows=rows_from(report)),
         Section("Tracking and torques", figures=("tracking.png", "torques.png")),
+        *([Section("Where episodes from every start end", figures=("starts.png",))] if sweep is not None else []),
         Section("Rollout from frame 0 (the reference as a ghost)", videos=("rollout.mp4",)),
     ], subtitle="crisp eval")
     written.append("report.html")
@@ -142,6 +181,8 @@ def run_eval(args: EvalArgs) -> dict[str, Any]:
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
+    if args.start_every < 0:
+        raise ValueError(f"--start-every must be at least 0 (no sweep), got {args.start_every}")
     actor, cfg = load_policy(args.policy, args.device)
     clips = [args.clip] if args.clip else policy_clips(cfg.clip)
     policy = torch_policy(actor, cfg.scene_aware, args.device)
@@ -150,11 +191,16 @@ def run_eval(args: EvalArgs) -> dict[str, Any]:
         metrics, rollout = evaluate_policy(policy, clip, episodes=args.episodes, seed=args.seed,
                                            scene_aware=cfg.scene_aware, render=args.video,
                                            velocity_feedforward=cfg.velocity_feedforward)
+        sweep = None
+        if args.start_every:
+            metrics["start_sweep"], sweep = start_sweep(policy, clip, args.start_every, rollout.num_frames,
+                                                        scene_aware=cfg.scene_aware,
+                                                        velocity_feedforward=cfg.velocity_feedforward)
         name = Path(str(clip)).name
         reports[name] = {"policy": str(args.policy), "clip": str(clip), "scene_aware": cfg.scene_aware,
                          "actor": cfg.model.actor, "training": policy_training_stats(args.policy), **metrics}
         write_outputs(rollout, reports[name], args.output / name if len(clips) > 1 else args.output,
-                      f"{name}: {Path(args.policy).name}")
+                      f"{name}: {Path(args.policy).name}", sweep)
     if len(clips) == 1:
         return reports[Path(str(clips[0])).name]
     summary = {"policy": str(args.policy), "clips": reports}
@@ -171,6 +217,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: success from RSI starts {rsi['success_rate']:.1%} of {rsi['episodes']}; from frame 0: "
               f"{'yes' if full['success'] else 'no'} ({full['frames_tracked']}/{full['frames_total']} frames); "
               f"W-MPJPE {full['w_mpjpe_mm']:.0f} mm, WA-MPJPE {full['wa_mpjpe_mm']:.0f} mm")
+        if "start_sweep" in row:
+            sweep = row["start_sweep"]
+            piles = ", ".join((f"frame {c['first_frame']}" if c["first_frame"] == c["last_frame"] else
+                               f"frames {c['first_frame']}-{c['last_frame']}") + f" ({c['episodes']} episodes)"
+                              for c in sweep["failure_clusters"]) or "nowhere"
+            print(f"  from every {sweep['every']}th frame: {sweep['success_rate']:.0%} reach the end; "
+                  f"failed episodes pile up at {piles}")
     where = " and one folder per clip, each with its report.html" if "clips" in report else \
         f"; open {args.output}/report.html"
     print(f"wrote {args.output}/report.json{where}")

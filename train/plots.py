@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from crisp_gym.atomic import atomic_path
-from crisp_gym.train.rollouts import Rollout
+from crisp_gym.train.rollouts import EvalResult, Rollout
 
 BODY_GROUPS = {
     "legs": ("Hip", "Knee", "Ankle", "Toe"),
@@ -68,6 +68,29 @@ def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]
     ax2.set_ylim(0, 1.02)
     ax2.set_xlabel("training frames (millions)")
     ax2.grid(alpha=0.3)
+    save_figure(fig, path)
+
+
+def plot_start_sweep(sweep: EvalResult, last_frame: int, path: Path, title: str = "") -> None:
+    """Where each episode of a start sweep ended (y) against where it started (x): successes
+    reach ``last_frame``; failures that line up horizontally are places no start gets past."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    ax.plot([0, last_frame], [0, last_frame], color="0.7", linewidth=1, label="start = end")
+    ok = sweep.success
+    ax.scatter(sweep.start_frames[ok], sweep.end_frames[ok], color="tab:green", s=18, label="reached the end")
+    ax.scatter(sweep.start_frames[~ok], sweep.end_frames[~ok], color="tab:red", s=18, label="terminated")
+    ax.set_xlabel("start frame")
+    ax.set_ylabel("frame the episode ended at")
+    ax.set_xlim(-1, last_frame + 1)
+    ax.set_ylim(-1, last_frame + 3)
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
     save_figure(fig, path)
 
 

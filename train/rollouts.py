@@ -74,6 +74,29 @@ class EvalResult:
         """Env-steps per second of the episodes (steps after an episode's end are not counted)."""
         return float(self.lengths.sum() / self.seconds)
 
+    @property
+    def end_frames(self) -> np.ndarray:
+        """(S,) the reference frame each episode ended at."""
+        return self.start_frames + self.lengths
+
+
+def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, *, gap: int = 3,
+                     min_episodes: int = 2) -> list[dict[str, int]]:
+    """Frames where failed episodes pile up: the failed episodes' end frames, sorted and split
+    wherever two are more than ``gap`` frames apart; groups of at least ``min_episodes`` as
+    ``{"first_frame", "last_frame", "episodes"}``, most episodes first.
+
+    Episodes started at different frames that end at the same place mark a part of the clip
+    the controller cannot get through, whatever its state on the way there.
+    """
+    ends = np.sort(np.asarray(end_frames)[np.asarray(failed, dtype=bool)])
+    if len(ends) == 0:
+        return []
+    groups = np.split(ends, np.flatnonzero(np.diff(ends) > gap) + 1)
+    clusters = [{"first_frame": int(g[0]), "last_frame": int(g[-1]), "episodes": len(g)}
+                for g in groups if len(g) >= min_episodes]
+    return sorted(clusters, key=lambda c: (-c["episodes"], c["first_frame"]))
+
 
 def run_episodes(policy: Policy, env: Any, *, seed: int = 0, options: dict | None = None) -> EvalResult:
     """One episode per simulation of a batched ``CrispTrack-v0`` (``env``), from the starts that

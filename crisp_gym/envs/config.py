@@ -23,6 +23,10 @@ class TrackConfig:
             moving reference by ``kd / kp`` seconds (0.1 s with the humanoid's gains): 1 rad at
             10 rad/s, the whole residual range, which fast captured moves (kicks, arm throws)
             exceed. The shipped policies were trained without it.
+        max_feedforward_lead: the lead is clipped to ±this (rad). Captured motion's light
+            bodies turn at up to ~1,500 °/s for a frame or two (CMU 131_01's right ankle and upper
+            arm); an unclipped lead of 2+ rad flips the foot, while most of the lag is removed
+            within ±0.3 rad (``docs/training.md``).
         num_future_frames: K, the reference frames in the ``targets`` observation.
         scene_aware: add the ``points`` observation (surface points of nearby primitives).
         num_points: N, points in the ``points`` observation.
@@ -61,6 +65,7 @@ class TrackConfig:
     residual_actions: bool = True
     action_scale: float = 1.0
     velocity_feedforward: bool = False
+    max_feedforward_lead: float = 0.3
     num_future_frames: int = 5
     scene_aware: bool = False
     num_points: int = 128
@@ -102,9 +107,9 @@ class TrackConfig:
         if not 0.0 <= self.rsi_first_frame_prob <= 1.0:
             raise ValueError(f"rsi_first_frame_prob must be in [0, 1], got {self.rsi_first_frame_prob}")
         if min(self.termination_distance, self.action_scale, self.point_spacing, self.max_joint_speed,
-               self.max_power) <= 0:
-            raise ValueError("termination_distance, action_scale, point_spacing, max_joint_speed and max_power "
-                             "must be positive")
+               self.max_power, self.max_feedforward_lead) <= 0:
+            raise ValueError("termination_distance, action_scale, point_spacing, max_joint_speed, max_power and "
+                             "max_feedforward_lead must be positive")
 
         if self.start_sampling not in ("uniform", "adaptive"):
             raise ValueError(f"start_sampling must be 'uniform' or 'adaptive', got {self.start_sampling!r}")

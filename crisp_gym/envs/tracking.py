@@ -289,7 +289,8 @@ def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: 
     """(N, 69) PD targets: residual on the next reference pose, or absolute within the ranges.
 
     With ``cfg.velocity_feedforward`` the residual targets also lead the reference by ``lead``
-    (69,) seconds (:func:`damping_lead`) times its hinge velocities.
+    (69,) seconds (:func:`damping_lead`) times its hinge velocities, at most
+    ``cfg.max_feedforward_lead`` radians either way.
     """
     action = np.clip(action, -1.0, 1.0)
     if cfg.residual_actions:
@@ -297,7 +298,8 @@ def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: 
         if cfg.velocity_feedforward:
             if lead is None:
                 raise ValueError("velocity_feedforward needs the actuators' damping lead (damping_lead(model))")
-            targets += lead * ref.qvel[next_frame, 6:]
+            limit = cfg.max_feedforward_lead
+            targets += np.clip(lead * ref.qvel[next_frame, 6:], -limit, limit)
         return targets
     mid, half = ranges.mean(axis=1), 0.5 * (ranges[:, 1] - ranges[:, 0])
     return mid + half * action
