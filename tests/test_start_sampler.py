@@ -107,9 +107,56 @@ def test_same_seed_same_starts():
     assert c1.tolist() == c2.tolist() and f1.tolist() == f2.tolist()
 
 
+@settings(max_examples=60, deadline=None)
+@given(lengths=clip_lengths, history=failure_history,
+       weights=st.lists(st.floats(0.1, 10.0), min_size=5, max_size=5))
+def test_adaptive_clip_probabilities_mix_weights_and_failure_rates(lengths, history, weights):
+    """A distribution; never below the weights' share; with equal weights, a clip that fails
+    more often is drawn at least as often; a clip that never failed gets the floor exactly."""
+    config = TrackConfig(clip_sampling="adaptive", clip_weights=tuple(weights[:len(lengths)]))
+    sampler = StartSampler(lengths, config)
+    _replay(sampler, history)
+    p, fixed = sampler.clip_probabilities(), sampler.fixed_clip_probabilities
+    assert p.sum() == pytest.approx(1.0) and np.all(p >= config.adaptive_uniform_share * fixed - 1e-12)
+    rates = sampler.failure_rates()
+    assert np.all((rates >= 0) & (rates <= 1))
+    if rates.sum() == 0:
+        np.testing.assert_allclose(p, fixed)  # nothing failed: the weights alone
+    else:
+        never = rates == 0
+        np.testing.assert_allclose(p[never], config.adaptive_uniform_share * fixed[never])
+        equal = StartSampler(lengths, TrackConfig(clip_sampling="adaptive"))
+        _replay(equal, history)
+        order = np.argsort(equal.failure_rates())
+        assert np.all(np.diff(equal.clip_probabilities()[order]) >= -1e-12)
+
+
+def test_failure_rates_count_ended_episodes_per_clip():
+    sampler = StartSampler([100, 100], TrackConfig(clip_sampling="adaptive", adaptive_memory=1e9))
+    failed = np.array([True] * 3 + [False] * 7 + [True] * 1 + [False] * 9)
+    sampler.record(np.array([0] * 10 + [1] * 10), np.full(20, 50), failed)
+    np.testing.assert_allclose(sampler.failure_rates(), [0.3, 0.1], rtol=1e-6)
+    # share 0.2 of equal weights, the rest split 3 : 1 by the rates
+    np.testing.assert_allclose(sampler.clip_probabilities(), [0.1 + 0.8 * 0.75, 0.1 + 0.8 * 0.25], rtol=1e-6)
+    clips, _ = sampler.sample(np.random.default_rng(0), 40_000)
+    assert np.mean(clips == 0) == pytest.approx(0.7, abs=0.01)
+    # uniform frames with adaptive clips: the sampler learns although start_sampling is uniform
+    assert sampler.config.start_sampling == "uniform" and sampler.learning
+    # fixed clips: the weights, whatever failed
+    fixed = StartSampler([100, 100], TrackConfig(start_sampling="adaptive", clip_weights=(1.0, 3.0)))
+    fixed.record(np.zeros(10, dtype=int), np.full(10, 50), np.ones(10, dtype=bool))
+    np.testing.assert_allclose(fixed.clip_probabilities(), [0.25, 0.75])
+    # after a resume the failure counts are back but not the ended counts: rates capped at 1
+    resumed = StartSampler([100, 100], TrackConfig(clip_sampling="adaptive"))
+    resumed.failures = [f.copy() for f in sampler.failures]
+    np.testing.assert_allclose(resumed.failure_rates(), [1.0, 1.0])
+
+
 def test_bad_configuration_is_refused():
     with pytest.raises(ValueError, match="start_sampling"):
         TrackConfig(start_sampling="greedy")
+    with pytest.raises(ValueError, match="clip_sampling"):
+        TrackConfig(clip_sampling="greedy")
     with pytest.raises(ValueError, match="clip_weights"):
         TrackConfig(clip_weights=(0.0, 0.0))
     with pytest.raises(ValueError, match="at least 2 frames"):

@@ -403,6 +403,26 @@ def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> No
     assert run_wall_time(tmp_path / "progress.csv") == pytest.approx(37.0)
 
 
+def test_a_resumed_log_gains_new_columns_but_not_other_clips(tmp_path: Path) -> None:
+    """A log from a version with fewer columns is rewritten with the new ones (old rows keep
+    their values, empty in the new columns); a log of other clips is refused."""
+    from crisp_gym.train.run_log import RunLogger
+
+    old = RunLogger(tmp_path, append=False, extra_fields=("start_failures/a",))
+    old.log({"iteration": 1, "frames": 100, "start_failures/a": 2.5})
+    old.close()
+    new = RunLogger(tmp_path, append=True, iteration=1, extra_fields=("start_failures/a", "clip_probability/a"))
+    new.log({"iteration": 2, "frames": 200, "start_failures/a": 1.0, "clip_probability/a": 1.0})
+    new.close()
+    with open(tmp_path / "progress.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        rows, header = list(reader), reader.fieldnames
+    assert header[-1] == "clip_probability/a"
+    assert [(r["start_failures/a"], r["clip_probability/a"]) for r in rows] == [("2.5", ""), ("1.0", "1.0")]
+    with pytest.raises(ValueError, match="clips the run started with"):
+        RunLogger(tmp_path, append=True, iteration=2, extra_fields=("start_failures/b",))
+
+
 def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: Path) -> None:
     from crisp_gym.policy.files import load_checkpoint
     from crisp_gym.train.ppo import train

@@ -32,6 +32,9 @@ class TrainConfig:
         clip_weights: relative probability of each clip at a reset (None: equal).
         start_sampling: "uniform" reference state init or "adaptive" (starts drawn
             where episodes recently failed; crisp_gym.envs.start_sampler).
+        clip_sampling: "fixed" (clips drawn by clip_weights) or "adaptive" (mixed with each
+            clip's weight times its recent failure rate: the library's hardest clips get more
+            episodes; crisp_gym.envs.start_sampler).
         output: run directory (config, checkpoint, CSV log).
         scene_aware: train the scene-aware policy (points observation, PointNet tokens).
         velocity_feedforward: PD targets lead the reference by the servos' kd/kp times its hinge
@@ -101,6 +104,7 @@ class TrainConfig:
     clip: tuple[str, ...] = ("flat_walk",)
     clip_weights: tuple[float, ...] | None = None
     start_sampling: str = "uniform"
+    clip_sampling: str = "fixed"
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/track")
     scene_aware: bool = False
     velocity_feedforward: bool = False

@@ -109,7 +109,7 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
                            clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling,
-                           velocity_feedforward=cfg.velocity_feedforward)
+                           clip_sampling=cfg.clip_sampling, velocity_feedforward=cfg.velocity_feedforward)
     return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 
@@ -406,8 +406,10 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             row = {"iteration": iteration, "frames": frames, "time_s": time.perf_counter() - start_time,
                    "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
                    "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
-            row.update({f"start_failures/{name}": float(mass)
-                        for name, mass in zip(clip_names, sampler.stats()["failure_mass"])})
+            sampling = sampler.stats()
+            row.update({f"start_failures/{name}": float(mass) for name, mass in zip(clip_names, sampling["failure_mass"])})
+            row.update({f"clip_probability/{name}": float(p)
+                        for name, p in zip(clip_names, sampling["clip_probability"])})
             reached = False
             if evaluation is not None and iteration % cfg.eval_every == 0:
                 results = evaluation(torch_policy(agent.actor, cfg.scene_aware, device))

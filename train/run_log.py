@@ -42,14 +42,15 @@ class RunLogger:
 
     def _truncate(self, iteration: int) -> None:
         """Drop rows after ``iteration``: a run that died between checkpoints logged
-        iterations that resuming repeats."""
+        iterations that resuming repeats. A log written by a version with fewer columns gains
+        the new ones (empty in its rows)."""
         with open(self.path, newline="") as f:
             reader = csv.DictReader(f)
             rows, header = list(reader), tuple(reader.fieldnames or ())
-        if header != self.fields:
+        if not set(header) <= set(self.fields):
             raise ValueError(f"{self.path} has the columns {list(header)}, but this run logs {list(self.fields)}: "
                              f"resume with the clips the run started with")
-        if all(int(row["iteration"]) <= iteration for row in rows):
+        if header == self.fields and all(int(row["iteration"]) <= iteration for row in rows):
             return
         with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
@@ -73,9 +74,11 @@ class RunLogger:
 
 
 def clip_fields(clip_names: list[str], evaluated: bool) -> tuple[str, ...]:
-    """The per-clip columns of ``progress.csv``: the adaptive sampler's failure mass and, with
-    periodic evaluation (``evaluated``), the evaluation's success and frames from frame 0."""
+    """The per-clip columns of ``progress.csv``: the adaptive sampler's failure mass, the
+    probability of drawing the clip and, with periodic evaluation (``evaluated``), the
+    evaluation's success and frames from frame 0."""
     fields = [f"start_failures/{name}" for name in clip_names]
+    fields += [f"clip_probability/{name}" for name in clip_names]
     if evaluated:
         fields += [f"eval_{kind}/{name}" for name in clip_names for kind in ("success", "frames")]
         fields += ["eval_success_min"]

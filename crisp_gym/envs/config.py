@@ -52,8 +52,12 @@ class TrackConfig:
             see :mod:`crisp_gym.envs.start_sampler`).
         clip_weights: with several clips, the relative probability of drawing each one at a
             reset, in library order (``None``: equal).
+        clip_sampling: ``"fixed"`` (clips drawn by ``clip_weights``) or ``"adaptive"`` (mixed
+            with each clip's weight times its recent failure rate; see
+            :mod:`crisp_gym.envs.start_sampler`).
         adaptive_bin_seconds: length of the time bins failures are counted in.
-        adaptive_uniform_share: share of adaptive starts drawn uniformly instead.
+        adaptive_uniform_share: share of adaptive starts drawn uniformly instead (and of
+            adaptive clip draws made by ``clip_weights`` alone).
         adaptive_memory: ended episodes over which failure counts are forgotten (by 1/e).
         adaptive_lookback: bins before a failure whose probability it also raises.
         adaptive_lookback_decay: weight of each bin further back (1, d, d², ...).
@@ -89,6 +93,7 @@ class TrackConfig:
     random_start: bool = True
     start_sampling: str = "uniform"
     clip_weights: tuple[float, ...] | None = None
+    clip_sampling: str = "fixed"
     adaptive_bin_seconds: float = 1.0
     adaptive_uniform_share: float = 0.2
     adaptive_memory: float = 500.0
@@ -113,6 +118,8 @@ class TrackConfig:
 
         if self.start_sampling not in ("uniform", "adaptive"):
             raise ValueError(f"start_sampling must be 'uniform' or 'adaptive', got {self.start_sampling!r}")
+        if self.clip_sampling not in ("fixed", "adaptive"):
+            raise ValueError(f"clip_sampling must be 'fixed' or 'adaptive', got {self.clip_sampling!r}")
         if self.clip_weights is not None:
             weights = np.asarray(self.clip_weights, dtype=float)
             if weights.ndim != 1 or not np.all(np.isfinite(weights)) or weights.min() < 0 or weights.sum() <= 0:
