@@ -407,7 +407,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                    "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
                    "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
             sampling = sampler.stats()
-            row.update({f"start_failures/{name}": float(mass) for name, mass in zip(clip_names, sampling["failure_mass"])})
+            row.update({f"start_failures/{name}": float(mass)
+                        for name, mass in zip(clip_names, sampling["failure_mass"])})
             row.update({f"clip_probability/{name}": float(p)
                         for name, p in zip(clip_names, sampling["clip_probability"])})
             reached = False

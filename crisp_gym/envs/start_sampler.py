@@ -32,9 +32,6 @@ import numpy as np
 
 from crisp_gym.envs.config import TrackConfig
 
-SAMPLING_MODES = ("uniform", "adaptive")
-CLIP_SAMPLING_MODES = ("fixed", "adaptive")
-
 
 class StartSampler:
     """Draws (clip, start frame) pairs; in adaptive mode, learns from ended episodes.
