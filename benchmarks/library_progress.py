@@ -15,7 +15,10 @@ import csv
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import tyro
+
+from crisp_gym.policy.files import run_clock
 
 
 @dataclass(frozen=True)
@@ -38,21 +41,6 @@ def clip_lengths(names: list[str]) -> dict[str, int]:
     return lengths
 
 
-def cumulative_times(rows: list[dict[str, str]]) -> tuple[list[float], list[float]]:
-    """Per row, wall seconds since the run began (segments added up) and compute seconds."""
-    wall, compute = [], []
-    offset, last, busy = 0.0, 0.0, 0.0
-    for row in rows:
-        elapsed = float(row["time_s"])
-        if elapsed < last:  # a resumed segment restarts its clock
-            offset += last
-        last = elapsed
-        busy += float(row["collect_s"]) + float(row["update_s"])
-        wall.append(offset + elapsed)
-        compute.append(busy)
-    return wall, compute
-
-
 def main(args: Args) -> dict[str, dict[str, float] | None]:
     with open(args.run / "progress.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -60,7 +48,8 @@ def main(args: Args) -> dict[str, dict[str, float] | None]:
     if not names:
         raise SystemExit(f"{args.run}/progress.csv has no periodic evaluations (train with --eval-every)")
     lengths = clip_lengths(names)
-    wall, compute = cumulative_times(rows)
+    wall = run_clock(float(row["time_s"]) for row in rows)
+    compute = np.cumsum([float(row["collect_s"]) + float(row["update_s"]) for row in rows])
 
     def reached(row: dict[str, str], name: str) -> bool:
         return (float(row[f"eval_success/{name}"]) >= args.success
@@ -69,9 +58,9 @@ def main(args: Args) -> dict[str, dict[str, float] | None]:
     results: dict[str, dict[str, float] | None] = {}
     for key, clips in [*((name, [name]) for name in names), ("all clips", names)]:
         hit = next((i for i, row in enumerate(rows)
-                    if row.get(f"eval_success/{names[0]}") and all(reached(row, c) for c in clips)), None)
+                    if row.get("eval_success_min") and all(reached(row, c) for c in clips)), None)
         results[key] = None if hit is None else {"frames": float(rows[hit]["frames"]), "wall_min": wall[hit] / 60,
-                                                  "compute_min": compute[hit] / 60}
+                                                  "compute_min": float(compute[hit]) / 60}
     print(f"{args.run}: first evaluation with success >= {args.success:.0%} from RSI starts and the whole clip "
           f"from frame 0 ({rows[-1]['frames']} frames logged)\n")
     print("| clip | frames | wall time (min) | compute time (min) |\n|---|---:|---:|---:|")

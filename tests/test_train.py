@@ -421,6 +421,9 @@ def test_a_resumed_log_gains_new_columns_but_not_other_clips(tmp_path: Path) -> 
     assert [(r["start_failures/a"], r["clip_probability/a"]) for r in rows] == [("2.5", ""), ("1.0", "1.0")]
     with pytest.raises(ValueError, match="clips the run started with"):
         RunLogger(tmp_path, append=True, iteration=2, extra_fields=("start_failures/b",))
+    with pytest.raises(ValueError, match="clips the run started with"):  # an added clip is no newer version
+        RunLogger(tmp_path, append=True, iteration=2,
+                  extra_fields=("start_failures/a", "start_failures/b", "clip_probability/a", "clip_probability/b"))
 
 
 def test_resume_applies_the_configured_learning_rates(clip_dir: Path, tmp_path: Path) -> None:

@@ -24,6 +24,11 @@ def _tracker(kind: str, directory: Path):
                                   "'crisp-gym[tracking]' (TensorBoard, W&B) or the package itself") from None
 
 
+def _kind(column: str) -> str:
+    """What a column measures, without its clip (``start_failures/stairs_up`` → ``start_failures``)."""
+    return column.split("/", 1)[0]
+
+
 class RunLogger:
     """``progress.csv`` rows, and the same scalars to TorchRL's experiment loggers (``kinds``)."""
 
@@ -47,7 +52,9 @@ class RunLogger:
         with open(self.path, newline="") as f:
             reader = csv.DictReader(f)
             rows, header = list(reader), tuple(reader.fieldnames or ())
-        if not set(header) <= set(self.fields):
+        new_kinds = {_kind(name) for name in set(self.fields) - set(header)}
+        if not set(header) <= set(self.fields) or new_kinds & {_kind(name) for name in header}:
+            # a missing column of a kind the log already has is another clip, not a newer version
             raise ValueError(f"{self.path} has the columns {list(header)}, but this run logs {list(self.fields)}: "
                              f"resume with the clips the run started with")
         if header == self.fields and all(int(row["iteration"]) <= iteration for row in rows):

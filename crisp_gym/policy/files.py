@@ -11,6 +11,7 @@ included), ``training`` (iterations, frames, wall time) and, optionally, ``criti
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -170,11 +171,18 @@ def run_wall_time(progress_csv: str | Path) -> float | None:
     path = Path(progress_csv)
     if not path.is_file():
         return None
-    total, last = 0.0, 0.0
     with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            elapsed = float(row["time_s"])
-            if elapsed < last:  # a resumed segment restarts its clock
-                total += last
-            last = elapsed
-    return total + last
+        clock = run_clock(float(row["time_s"]) for row in csv.DictReader(f))
+    return clock[-1] if clock else 0.0
+
+
+def run_clock(times_s: Iterable[float]) -> list[float]:
+    """Seconds since a run began at each ``progress.csv`` row, from the rows' ``time_s``:
+    each resumed segment restarts its own clock, so the segments before it are added."""
+    clock, offset, last = [], 0.0, 0.0
+    for elapsed in times_s:
+        if elapsed < last:  # a resumed segment restarts its clock
+            offset += last
+        last = elapsed
+        clock.append(offset + elapsed)
+    return clock
