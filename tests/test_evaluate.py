@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from crisp_gym.train.rollouts import evaluate, record_rollout, zero_policy
+from crisp_gym.train.rollouts import evaluate, record_rollout, torch_policy, zero_policy
 from crisp_gym.train.tracking_metrics import accel_error, jitter, rigid_align, segment_mpjpe
 from tests.test_train import SMALL_MLP, _obs, clip_dir  # noqa: F401  (clip_dir is a fixture)
 
@@ -122,6 +122,28 @@ def test_rollout_matches_the_batched_env(clip_dir: Path) -> None:  # noqa: F811
     assert metrics["mpjpe_mm"] <= 1000.0 * rollout.max_body_error.mean() + 1e-9
     assert set(metrics["mean_reward_terms"]) == {"pos", "rot", "vel", "ang_vel", "height", "energy"}
     assert rollout.torques.shape == (rollout.steps, 69)
+
+
+def test_torch_policy_runs_on_one_thread_and_returns_the_mean() -> None:
+    """Between simulation steps the forward pass runs on one torch thread (its spinning workers
+    would take cores from MuJoCo's); the caller's thread count is back afterwards."""
+    seen = []
+
+    class Actor(torch.nn.Module):
+        def forward(self, proprio, targets):
+            seen.append(torch.get_num_threads())
+            return proprio[:, :3] * 2.0, torch.ones(len(proprio), 3)
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        obs = {"proprio": np.arange(8, dtype=np.float32).reshape(2, 4), "targets": np.zeros((2, 1, 5), np.float32)}
+        action = torch_policy(Actor(), scene_aware=False)(obs)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1]
+    np.testing.assert_array_equal(action, [[0, 2, 4], [8, 10, 12]])
 
 
 def test_rsi_start_frames_are_seeded(clip_dir: Path) -> None:  # noqa: F811

@@ -54,6 +54,7 @@ from crisp_gym.policy.files import BEST_NAME, CHECKPOINT_NAME, load_checkpoint, 
 from crisp_gym.policy.networks import Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 from crisp_gym.train.checkpoints import check_resumable, evaluation_score, evaluation_score_of, save_checkpoint
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict
+from crisp_gym.train.rollouts import LibraryEvaluation, single_cpu_thread, torch_policy
 from crisp_gym.train.run_log import RunLogger, clip_fields, evaluation_row
 
 
@@ -350,8 +351,6 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             sampler.failures = restored
     evaluation = None
     if cfg.eval_every:
-        from crisp_gym.train.rollouts import LibraryEvaluation, torch_policy
-
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
                                        num_threads=cfg.num_threads, velocity_feedforward=cfg.velocity_feedforward)
     logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
@@ -368,15 +367,10 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
-            update_threads = torch.get_num_threads()
-            if device.type == "cpu":
-                # one step's forward pass is too small to split across threads: with two
-                # threads on a busy 2-core machine it took 5x as long as with one
-                torch.set_num_threads(1)
-            data = next(batches)  # (num_envs, steps_per_env); on Ray (workers, num_envs, steps_per_env)
+            with single_cpu_thread(device):  # with two threads a forward pass took 5x as long on a busy machine
+                data = next(batches)  # (num_envs, steps_per_env); on Ray (workers, num_envs, steps_per_env)
             if cfg.ray_workers:
                 data = data.reshape(-1, data.shape[-1])
-            torch.set_num_threads(update_threads)
             collect_s = time.perf_counter() - collect_start
             env_s = env.env_time - env_before
 
