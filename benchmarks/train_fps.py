@@ -11,6 +11,7 @@ frames, and splits the wall-clock time of the measured iterations into:
 
     python benchmarks/train_fps.py                      # CPU profile, MLP and transformer actors
     python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
+    python benchmarks/train_fps.py --actors mlp --no-baseline --point-encoders pointnet flat
 
 The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
 The baseline, measured first in the same run, is the CPU profile as it was before its
@@ -47,6 +48,8 @@ class Args:
         profile: ``cpu`` or ``paper`` defaults for everything not set here.
         actors: actor architectures to measure.
         scene: which variants to measure (``blind``, ``aware``).
+        point_encoders: the scene-aware variants' point encoders (``pointnet``, ``flat``; default:
+            the profile's).
         frames: frames measured per variant (rounded up to whole iterations).
         warmup: iterations run before measuring.
         baseline: also measure the baseline (see the module docstring) and give ratios to it.
@@ -62,6 +65,7 @@ class Args:
     profile: str = "cpu"
     actors: tuple[str, ...] = ("mlp", "transformer")
     scene: tuple[str, ...] = ("blind", "aware")
+    point_encoders: tuple[str, ...] = ()
     frames: int = 16384
     warmup: int = 2
     baseline: bool = True
@@ -135,14 +139,16 @@ def main(argv: list[str] | None = None) -> int:
     default_threads = torch.get_num_threads()
     print(f"torch threads by default: {default_threads}, device: {args.device}, profile: {args.profile}")
     variants = [("baseline", "blind", replace(base, **BASELINE))] if args.baseline else []
-    variants += [(actor, scene, replace(base, scene_aware=scene == "aware", model=replace(base.model, actor=actor),
-                                        **overrides))
-                 for actor in args.actors for scene in args.scene]
+    encoders = {"blind": (base.model.point_encoder,), "aware": args.point_encoders or (base.model.point_encoder,)}
+    variants += [(actor, scene, replace(base, scene_aware=scene == "aware",
+                                        model=replace(base.model, actor=actor, point_encoder=encoder), **overrides))
+                 for actor in args.actors for scene in args.scene for encoder in encoders[scene]]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         clip = str(resolve_clip(args.clip))
         for name, scene, variant in variants:
-            cfg = replace(variant, clip=clip, output=Path(tmp) / f"{name}-{scene}", device=args.device,
+            cfg = replace(variant, clip=clip, output=Path(tmp) / f"{name}-{scene}-{variant.model.point_encoder}",
+                          device=args.device,
                           seed=args.seed, progress=False, checkpoint_every=10**9)
             iterations = -(-args.frames // cfg.frames_per_iteration)
             cfg = replace(cfg, frames=(args.warmup + iterations) * cfg.frames_per_iteration)
@@ -157,7 +163,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, scene, cfg, s in rows:
         actor = cfg.model.actor + (str(cfg.model.mlp_actor_hidden) if cfg.model.actor == "mlp" else "")
         ratio = f"{s['fps'] / reference:.2f}" if reference else "–"
-        print(f"| {name if name == 'baseline' else 'scene-' + scene} | {actor} | {cfg.model.critic_hidden} | "
+        label = "baseline" if name == "baseline" else f"scene-{scene}"
+        if cfg.scene_aware:
+            label += f" ({cfg.model.point_encoder})"
+        print(f"| {label} | {actor} | {cfg.model.critic_hidden} | "
               f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | "
               f"{cfg.torch_threads or default_threads} | {s['fps']:.0f} | {ratio} | "
               f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")

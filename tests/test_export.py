@@ -375,16 +375,17 @@ def test_motion_readers_reject_other_files(exported, tmp_path: Path) -> None:
 # Policies
 
 
-def _tiny_actor(kind: str, scene_aware: bool, num_future: int = 5):
+def _tiny_actor(kind: str, scene_aware: bool, num_future: int = 5, points: str = "pointnet"):
     from crisp_gym.policy.networks import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
 
     torch.manual_seed(0)
     config = ModelConfig(actor=kind, latent_dim=32, ff_dim=64, num_layers=1, num_heads=2, pointnet_hidden=(16, 32),
-                         mlp_actor_hidden=(32, 32), init_action_std=0.1)  # a visible output, not ~0
+                         mlp_actor_hidden=(32, 32), init_action_std=0.1,  # a visible output, not ~0
+                         point_encoder=points)
     normalizer = ObsNormalizer(num_future)
     normalizer.update(torch.randn(256, 361) * 3 + 1, torch.randn(256, num_future, 432) * 2 - 1)
     cls = TransformerActor if kind == "transformer" else MLPActor
-    return FixedStdGaussian(cls(num_future, scene_aware, normalizer, config))
+    return FixedStdGaussian(cls(num_future, 128 if scene_aware else 0, normalizer, config))
 
 
 def _observations(batch: int, scene_aware: bool, num_points: int = 128, seed: int = 1) -> tuple[torch.Tensor, ...]:
@@ -393,17 +394,19 @@ def _observations(batch: int, scene_aware: bool, num_points: int = 128, seed: in
     return obs + ((torch.randn(batch, num_points, 3, generator=g),) if scene_aware else ())
 
 
-@pytest.mark.parametrize("kind, scene_aware", [("mlp", False), ("transformer", True)])
-def test_policy_onnx_and_torchscript_match_torch(kind: str, scene_aware: bool, tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind, scene_aware, points", [("mlp", False, "pointnet"), ("transformer", True, "pointnet"),
+                                                       ("mlp", True, "flat")])
+def test_policy_onnx_and_torchscript_match_torch(kind: str, scene_aware: bool, points: str, tmp_path: Path) -> None:
     import onnxruntime
 
     from crisp_gym.export.policy import export_inference_policy
 
-    actor = _tiny_actor(kind, scene_aware)
+    actor = _tiny_actor(kind, scene_aware, points=points)
     files = {p.name: p for p in export_inference_policy(actor, tmp_path)}
     session = onnxruntime.InferenceSession(str(files["policy.onnx"]))
     scripted = torch.jit.load(str(files["policy.pt"]))
-    for batch, num_points in ((1, 128), (6, 40)):
+    # a PointNet takes any number of points, a flat encoder the 128 it was built for
+    for batch, num_points in ((1, 128), (6, 128 if points == "flat" else 40)):
         obs = _observations(batch, scene_aware, num_points)
         with torch.no_grad():
             expected = actor(*obs)[0].numpy()

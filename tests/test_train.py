@@ -71,11 +71,12 @@ def _obs(batch: tuple[int, ...], scene_aware: bool, seed: int = 0) -> list[torch
 
 
 @pytest.mark.parametrize("actor", ["transformer", "mlp"])
-@pytest.mark.parametrize("scene_aware", [False, True], ids=["blind", "scene"])
-def test_model_shapes(actor: str, scene_aware: bool) -> None:
-    config = replace(ModelConfig(), actor=actor)
+@pytest.mark.parametrize("scene_aware, points", [(False, "pointnet"), (True, "pointnet"), (True, "flat")],
+                         ids=["blind", "pointnet", "flat"])
+def test_model_shapes(actor: str, scene_aware: bool, points: str) -> None:
+    config = replace(ModelConfig(), actor=actor, point_encoder=points)
     normalizer = ObsNormalizer(K)
-    policy = FixedStdGaussian(build_actor(config, K, scene_aware, normalizer), config.action_std)
+    policy = FixedStdGaussian(build_actor(config, K, N_POINTS if scene_aware else 0, normalizer), config.action_std)
     critic = Critic(K, N_POINTS if scene_aware else 0, normalizer, config.critic_hidden)
     obs = _obs((2, 3), scene_aware)
     loc, scale = policy(*obs)
@@ -92,9 +93,41 @@ def test_model_shapes(actor: str, scene_aware: bool) -> None:
             policy(*obs[:2])
 
 
+def test_flat_points_is_a_linear_map_of_the_points_in_their_order() -> None:
+    from crisp_gym.policy.networks import FlatPoints
+
+    encoder = FlatPoints(2, 3)
+    with torch.no_grad():
+        encoder.linear.weight.copy_(torch.arange(18.0).reshape(3, 6) / 10)
+        encoder.linear.bias.copy_(torch.tensor([0.0, -1.0, -30.0]))
+    points = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]])
+    # flattened [1, 0, 0, 0, 0, 2]: each row of W takes its first and its last entry (x2)
+    pre = torch.tensor([[0.0 + 2 * 0.5 + 0.0, 0.6 + 2 * 1.1 - 1.0, 1.2 + 2 * 1.7 - 30.0]])
+    torch.testing.assert_close(encoder(points), torch.nn.functional.elu(pre))
+    assert not torch.equal(encoder(points.flip(1)), encoder(points))  # each slot has its own weights
+    with pytest.raises(ValueError, match=r"\(2, 3\) points"):
+        encoder(torch.zeros(1, 3, 3))
+    with pytest.raises(ValueError, match="point_encoder"):
+        ModelConfig(point_encoder="voxels")
+
+
+def test_files_from_before_the_point_encoder_option_load() -> None:
+    """Actors saved when the encoder was always a PointNet named it ``pointnet``."""
+    normalizer = ObsNormalizer(K)
+    saved = build_actor(SMALL_MLP, K, N_POINTS, normalizer).state_dict()
+    old = {k.replace("point_encoder.", "pointnet."): v for k, v in saved.items()}
+    assert any(k.startswith("pointnet.") for k in old)
+    actor = build_actor(SMALL_MLP, K, N_POINTS, ObsNormalizer(K))
+    actor.load_state_dict(old)
+    reference = build_actor(SMALL_MLP, K, N_POINTS, ObsNormalizer(K))
+    reference.load_state_dict(saved)
+    obs = _obs((4,), True, seed=3)
+    torch.testing.assert_close(actor(*obs), reference(*obs), rtol=0, atol=0)
+
+
 def test_transformer_tokens_and_paper_size() -> None:
     config = ModelConfig(num_point_tokens=2)
-    actor = TransformerActor(K, True, ObsNormalizer(K), config)
+    actor = TransformerActor(K, N_POINTS, ObsNormalizer(K), config)
     proprio, targets, points = _obs((4,), True)
     tokens = actor.tokens(proprio, targets, points)
     assert tokens.shape == (4, 1 + K + 2, 256)  # proprio + one per target frame + point tokens
@@ -144,7 +177,7 @@ def test_limited_statistics_weigh_new_data_as_if_that_many_samples_had_been_seen
 
 def test_obs_normalizer_is_shared_and_saved() -> None:
     normalizer = ObsNormalizer(K)
-    actor = build_actor(SMALL_MLP, K, False, normalizer)
+    actor = build_actor(SMALL_MLP, K, 0, normalizer)
     critic = Critic(K, 0, normalizer, SMALL_MLP.critic_hidden)
     proprio, targets = _obs((50,), False)
     normalizer.update(proprio * 3 + 1, targets)
@@ -323,19 +356,22 @@ def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
         train(replace(cfg, output=tmp_path / "nothing", resume=True))
 
 
-def test_save_load_agent_exact(tmp_path: Path) -> None:
+@pytest.mark.parametrize("model, num_points", [(TINY_TRANSFORMER, N_POINTS),
+                                               (replace(SMALL_MLP, point_encoder="flat"), 48)],
+                         ids=["pointnet", "flat"])
+def test_save_load_agent_exact(model: ModelConfig, num_points: int, tmp_path: Path) -> None:
     from crisp_gym.train.checkpoints import load_policy, save_checkpoint
     from crisp_gym.train.config import paper_profile
     from crisp_gym.train.ppo import build_agent
 
-    cfg = paper_profile(output=tmp_path, scene_aware=True, model=TINY_TRANSFORMER)
-    agent = build_agent(cfg.model, K, N_POINTS)
+    cfg = paper_profile(output=tmp_path, scene_aware=True, model=model)
+    agent = build_agent(cfg.model, K, num_points)
     agent.normalizer.update(*_obs((64,), False, seed=2))
     optimizer = torch.optim.Adam(agent.actor.parameters())
     save_checkpoint(tmp_path / "checkpoint.pt", agent, optimizer, 7, 1234, cfg, torch.Generator())
-    loaded, loaded_cfg = load_policy(tmp_path)
+    loaded, loaded_cfg = load_policy(tmp_path)  # a flat encoder's point count comes back from its weights
     assert loaded_cfg == cfg
-    obs = _obs((3,), True, seed=9)
+    obs = _obs((3,), False, seed=9) + [torch.randn(3, num_points, 3, generator=torch.Generator().manual_seed(9))]
     torch.testing.assert_close(loaded(*obs)[0], agent.actor(*obs)[0], rtol=0, atol=0)
 
 

@@ -88,7 +88,7 @@ def build_agent(model: ModelConfig, num_targets: int, num_points: int, normalize
 
     scene_aware = num_points > 0
     normalizer = ObsNormalizer(num_targets, clip=model.obs_clip, enabled=normalize_obs)
-    actor = FixedStdGaussian(build_actor(model, num_targets, scene_aware, normalizer), model.action_std)
+    actor = FixedStdGaussian(build_actor(model, num_targets, num_points, normalizer), model.action_std)
     critic = Critic(num_targets, num_points, normalizer, model.critic_hidden)
     actor.to(device)
     critic.to(device)

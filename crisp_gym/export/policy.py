@@ -4,7 +4,8 @@ The exported network is the deterministic policy (the Gaussian's mean, what eval
 the observation normaliser folded in: it takes the raw observation tensors and returns the action.
 
 * ``policy.onnx``: inputs ``proprio`` (B, 361), ``targets`` (B, K, 432) and, scene-aware, ``points``
-  (B, N, 3), all float32 with a dynamic batch B (and N); output ``action`` (B, 69).
+  (B, N, 3), all float32 with a dynamic batch B (and N, unless the actor's point encoder is
+  ``"flat"``, which fixes N); output ``action`` (B, 69).
 * ``policy.pt``: TorchScript with the same signature (``torch.jit.load``).
 * ``policy.json`` (:func:`policy_layout`): every input's segments (names, shapes, units, frames, how
   they are computed), the action's meaning (residual or absolute PD targets, scale, clipping, joint
@@ -57,6 +58,11 @@ class DeterministicPolicy(nn.Module):
     @property
     def num_future_frames(self) -> int:
         return int(self.actor.normalizer.targets.shape[0])
+
+    @property
+    def fixed_num_points(self) -> int | None:
+        """The number of points a flat point encoder was built for; None: any number (PointNet, scene-blind)."""
+        return getattr(getattr(self.actor, "point_encoder", None), "num_points", None)
 
     def forward(self, proprio: torch.Tensor, targets: torch.Tensor, points: torch.Tensor | None = None) -> torch.Tensor:
         return self.actor(proprio, targets, points)
@@ -155,6 +161,9 @@ def export_inference_policy(actor: nn.Module, directory: str | Path, track: Trac
     if track.num_future_frames != k or track.scene_aware != policy.scene_aware:
         raise ValueError(f"the actor takes {k} future frames (scene_aware={policy.scene_aware}); the track config "
                          f"says {track.num_future_frames} (scene_aware={track.scene_aware})")
+    if policy.fixed_num_points not in (None, track.num_points):
+        raise ValueError(f"the actor's flat point encoder takes {policy.fixed_num_points} points; the track config "
+                         f"says {track.num_points}")
     directory = Path(directory)
     names = ["proprio", "targets", "points"][: 3 if policy.scene_aware else 2]
     example = policy.example_inputs(num_points=track.num_points)
@@ -167,7 +176,8 @@ def export_inference_policy(actor: nn.Module, directory: str | Path, track: Trac
             batch = torch.export.Dim("batch")
             shapes = {"proprio": {0: batch}, "targets": {0: batch}}
             if policy.scene_aware:
-                shapes["points"] = {0: batch, 1: torch.export.Dim("num_points")}
+                points = torch.export.Dim("num_points") if policy.fixed_num_points is None else None
+                shapes["points"] = {0: batch} if points is None else {0: batch, 1: points}
             with atomic_path(directory / "policy.onnx") as tmp:
                 torch.onnx.export(policy, example, str(tmp), input_names=names, output_names=["action"],
                                   dynamic_shapes=shapes, dynamo=True, opset_version=ONNX_OPSET,

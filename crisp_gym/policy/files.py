@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from crisp_gym.atomic import atomic_path
+from crisp_gym.envs.config import TrackConfig
 from crisp_gym.file_errors import reading
 from crisp_gym.policy.networks import FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 from crisp_gym.torch_file import load_tensors
@@ -99,6 +100,15 @@ def model_config(config: dict[str, Any]) -> ModelConfig:
     return ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["model"].items()})
 
 
+def _num_points(actor_state: dict[str, torch.Tensor], config: dict[str, Any]) -> int:
+    """The points a saved actor takes: 0 scene-blind; a flat encoder's from its weights; a PointNet
+    takes any number (the env's default is as good as any)."""
+    if not config["scene_aware"]:
+        return 0
+    flat = actor_state.get("actor.point_encoder.linear.weight")
+    return flat.shape[1] // 3 if flat is not None else TrackConfig().num_points
+
+
 def load_actor(path: str | Path, device: torch.device | str = "cpu") -> LoadedPolicy:
     """The trained actor of a run directory, checkpoint or policy file (see :func:`read_policy_source`)."""
     path, state = read_policy_source(path)
@@ -108,7 +118,7 @@ def load_actor(path: str | Path, device: torch.device | str = "cpu") -> LoadedPo
             model = model_config(config)
             num_targets = state["actor"]["actor.normalizer.targets.mean"].shape[0]
             normalizer = ObsNormalizer(num_targets, clip=model.obs_clip, enabled=config["normalize_obs"])
-            actor = FixedStdGaussian(build_actor(model, num_targets, config["scene_aware"], normalizer),
+            actor = FixedStdGaussian(build_actor(model, num_targets, _num_points(state["actor"], config), normalizer),
                                      model.action_std)
             actor.load_state_dict(state["actor"])
     except RuntimeError as err:  # torch: weights whose shapes disagree with the configured model

@@ -6,8 +6,8 @@ batch dimensions and returns tensors. TorchRL wraps them in :mod:`crisp_gym.trai
 actor is read back from its file by :mod:`crisp_gym.policy.files`.
 
 * :class:`TransformerActor`: the paper's actor. One token from the proprioception, one per
-  future target frame and, scene-aware, ``num_point_tokens`` tokens from a :class:`PointNet`
-  over the points; a transformer encoder (latent 256, feed-forward 512, 2 layers, 2 heads);
+  future target frame and, scene-aware, ``num_point_tokens`` tokens from the point encoder
+  (the paper's :class:`PointNet`, or :class:`FlatPoints`); a transformer encoder (latent 256, feed-forward 512, 2 layers, 2 heads);
   mean-pooled tokens → 69 action means.
 * :class:`MLPActor`: the same inputs flattened into an MLP of similar size (the CPU profile:
   a PPO epoch costs about a third of the transformer's on two cores).
@@ -19,6 +19,9 @@ actor is read back from its file by :mod:`crisp_gym.policy.files`.
 The actor and the critic hold the *same* :class:`ObsNormalizer` instance. Points are not
 normalised: they are already metres in the pelvis's heading frame, and the PointNet is
 invariant to their order, which per-point statistics would break.
+
+Scene-aware actors are built for a number of points N (``num_points``; 0 means scene-blind): the
+PointNet takes any N, :class:`FlatPoints` the N it was built for.
 """
 
 from __future__ import annotations
@@ -45,9 +48,12 @@ class ModelConfig:
         ff_dim: transformer feed-forward width.
         num_layers: transformer encoder layers.
         num_heads: self-attention heads.
-        num_point_tokens: tokens the PointNet feature is projected to (scene-aware only).
+        num_point_tokens: tokens the point feature is projected to (scene-aware only).
+        point_encoder: how a scene-aware actor encodes the points: "pointnet" (the paper's) or
+            "flat" (:class:`FlatPoints`: one linear layer over the points nearest first, a
+            fraction of a PointNet's cost in the PPO update).
         pointnet_hidden: widths of the PointNet's shared per-point MLP (the last one is the
-            pooled feature size).
+            pooled feature size, also the flat encoder's feature size).
         mlp_actor_hidden: hidden sizes of the MLP actor.
         critic_hidden: hidden sizes of the critic (paper: [1024, 512]).
         action_std: the Gaussian policy's fixed standard deviation (paper: 0.055).
@@ -62,6 +68,7 @@ class ModelConfig:
     num_layers: int = 2
     num_heads: int = 2
     num_point_tokens: int = 1
+    point_encoder: str = "pointnet"
     pointnet_hidden: tuple[int, ...] = (64, 128, 256)
     mlp_actor_hidden: tuple[int, ...] = (512, 512)
     critic_hidden: tuple[int, ...] = (1024, 512)
@@ -72,6 +79,8 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.actor not in ("transformer", "mlp"):
             raise ValueError(f"actor must be 'transformer' or 'mlp', got {self.actor!r}")
+        if self.point_encoder not in ("pointnet", "flat"):
+            raise ValueError(f"point_encoder must be 'pointnet' or 'flat', got {self.point_encoder!r}")
         if self.latent_dim % self.num_heads:
             raise ValueError(f"latent_dim ({self.latent_dim}) must be divisible by num_heads ({self.num_heads})")
         if self.action_std <= 0 or self.obs_clip <= 0:
@@ -191,6 +200,44 @@ class PointNet(nn.Module):
         return self.point_mlp(points).max(dim=-2).values
 
 
+class FlatPoints(nn.Module):
+    """The points flattened in their order, through one linear layer and an ELU: (…, N, 3) → (…, out_dim).
+
+    The env sorts them nearest the pelvis first, so each slot keeps a meaning; on two CPU cores
+    its PPO update costs about what a scene-blind actor's does, where a PointNet over 128 points
+    doubled it (a shared MLP per point, then the max).
+    """
+
+    def __init__(self, num_points: int, out_dim: int):
+        super().__init__()
+        if num_points < 1:
+            raise ValueError(f"num_points must be at least 1, got {num_points}")
+        self.num_points = num_points
+        self.linear = nn.Linear(3 * num_points, out_dim)
+        self.activation = nn.ELU()
+        self.out_dim = out_dim
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if not torch.jit.is_tracing() and points.shape[-2:] != (self.num_points, 3):  # (traced: shapes are fixed)
+            raise ValueError(f"this encoder takes ({self.num_points}, 3) points, got {tuple(points.shape[-2:])}")
+        return self.activation(self.linear(points.flatten(-2)))
+
+
+def point_encoder(config: ModelConfig, num_points: int) -> PointNet | FlatPoints:
+    """The scene-aware actors' point encoder named by ``config.point_encoder``."""
+    if config.point_encoder == "flat":
+        return FlatPoints(num_points, config.pointnet_hidden[-1])
+    return PointNet(config.pointnet_hidden)
+
+
+def _rename_pointnet(module: nn.Module, state_dict: dict, prefix: str, *_) -> None:
+    """``register_load_state_dict_pre_hook``: files written before the point encoder was
+    configurable call it ``pointnet``."""
+    old = prefix + "pointnet."
+    for key in [k for k in state_dict if k.startswith(old)]:
+        state_dict[prefix + "point_encoder." + key[len(old):]] = state_dict.pop(key)
+
+
 def _flatten_batch(x: torch.Tensor, feature_dims: int) -> tuple[torch.Tensor, torch.Size]:
     """Collapse the leading batch dimensions of ``x`` into one; returns them for restoring."""
     batch = x.shape[: x.dim() - feature_dims]
@@ -219,16 +266,16 @@ class TransformerActor(nn.Module):
 
     Args:
         num_targets: K.
-        scene_aware: expect ``points``.
+        num_points: N, the ``points`` it expects; 0: scene-blind.
         normalizer: the shared observation normaliser.
         config: architecture.
     """
 
-    def __init__(self, num_targets: int, scene_aware: bool, normalizer: ObsNormalizer,
+    def __init__(self, num_targets: int, num_points: int, normalizer: ObsNormalizer,
                  config: ModelConfig = ModelConfig()):
         super().__init__()
         d = config.latent_dim
-        self.scene_aware = scene_aware
+        self.scene_aware = scene_aware = num_points > 0
         self.normalizer = normalizer
         self.num_point_tokens = config.num_point_tokens
         self.proprio_embed = nn.Linear(PROPRIO_DIM, d)
@@ -237,8 +284,9 @@ class TransformerActor(nn.Module):
         num_types = 3 if scene_aware else 2
         self.type_embed = nn.Parameter(torch.zeros(num_types, d))
         if scene_aware:
-            self.pointnet = PointNet(config.pointnet_hidden)
-            self.point_embed = nn.Linear(self.pointnet.out_dim, d * config.num_point_tokens)
+            self.point_encoder = point_encoder(config, num_points)
+            self.point_embed = nn.Linear(self.point_encoder.out_dim, d * config.num_point_tokens)
+            self.register_load_state_dict_pre_hook(_rename_pointnet)
         layer = nn.TransformerEncoderLayer(d, config.num_heads, config.ff_dim, dropout=0.0, activation="gelu",
                                            batch_first=True, norm_first=True)
         self.encoder = nn.TransformerEncoder(layer, config.num_layers, enable_nested_tensor=False)
@@ -256,7 +304,7 @@ class TransformerActor(nn.Module):
         tokens = [self.proprio_embed(proprio)[:, None] + self.type_embed[0],
                   self.target_embed(targets) + self.frame_embed + self.type_embed[1]]
         if self.scene_aware:
-            feature = self.point_embed(self.pointnet(points))
+            feature = self.point_embed(self.point_encoder(points))
             tokens.append(feature.reshape(feature.shape[0], self.num_point_tokens, -1) + self.type_embed[2])
         return torch.cat(tokens, dim=1)
 
@@ -273,24 +321,25 @@ class TransformerActor(nn.Module):
 
 
 class MLPActor(nn.Module):
-    """MLP actor: normalised ``proprio`` and flattened ``targets`` (+ a PointNet feature) → action means.
+    """MLP actor: normalised ``proprio`` and flattened ``targets`` (+ a point feature) → action means.
 
     Args:
         num_targets: K.
-        scene_aware: expect ``points`` (encoded by a :class:`PointNet`).
+        num_points: N, the ``points`` it expects (encoded by :func:`point_encoder`); 0: scene-blind.
         normalizer: the shared observation normaliser.
-        config: architecture (``mlp_actor_hidden``, ``pointnet_hidden``).
+        config: architecture (``mlp_actor_hidden``, ``point_encoder``, ``pointnet_hidden``).
     """
 
-    def __init__(self, num_targets: int, scene_aware: bool, normalizer: ObsNormalizer,
+    def __init__(self, num_targets: int, num_points: int, normalizer: ObsNormalizer,
                  config: ModelConfig = ModelConfig()):
         super().__init__()
-        self.scene_aware = scene_aware
+        self.scene_aware = num_points > 0
         self.normalizer = normalizer
         in_dim = PROPRIO_DIM + num_targets * TARGET_DIM
-        if scene_aware:
-            self.pointnet = PointNet(config.pointnet_hidden)
-            in_dim += self.pointnet.out_dim
+        if self.scene_aware:
+            self.point_encoder = point_encoder(config, num_points)
+            in_dim += self.point_encoder.out_dim
+            self.register_load_state_dict_pre_hook(_rename_pointnet)
         self.net = mlp(in_dim, config.mlp_actor_hidden, ACTION_DIM)
         head = self.net[-1]
         nn.init.normal_(head.weight, std=config.init_action_std)
@@ -301,7 +350,7 @@ class MLPActor(nn.Module):
         """Action means (…, 69)."""
         features = _flat_features(self.normalizer, self.scene_aware, proprio, targets, points)
         if self.scene_aware:
-            features.append(self.pointnet(points))
+            features.append(self.point_encoder(points))
         return self.net(torch.cat(features, dim=-1))
 
     @property
@@ -353,8 +402,8 @@ class Critic(nn.Module):
         return self.net(torch.cat(features, dim=-1))
 
 
-def build_actor(config: ModelConfig, num_targets: int, scene_aware: bool,
+def build_actor(config: ModelConfig, num_targets: int, num_points: int,
                 normalizer: ObsNormalizer) -> TransformerActor | MLPActor:
-    """The actor named by ``config.actor``."""
+    """The actor named by ``config.actor``, for ``num_points`` points (0: scene-blind)."""
     cls = TransformerActor if config.actor == "transformer" else MLPActor
-    return cls(num_targets, scene_aware, normalizer, config)
+    return cls(num_targets, num_points, normalizer, config)
