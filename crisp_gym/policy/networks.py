@@ -7,8 +7,8 @@ actor is read back from its file by :mod:`crisp_gym.policy.files`.
 
 * :class:`TransformerActor`: the paper's actor. One token from the proprioception, one per
   future target frame and, scene-aware, ``num_point_tokens`` tokens from the point encoder
-  (the paper's :class:`PointNet`, or :class:`FlatPoints`); a transformer encoder (latent 256, feed-forward 512, 2 layers, 2 heads);
-  mean-pooled tokens → 69 action means.
+  (the paper's :class:`PointNet`, or :class:`FlatPoints`); a transformer encoder (latent 256,
+  feed-forward 512, 2 layers, 2 heads); mean-pooled tokens → 69 action means.
 * :class:`MLPActor`: the same inputs flattened into an MLP of similar size (the CPU profile:
   a PPO epoch costs about a third of the transformer's on two cores).
 * :class:`FixedStdGaussian`: actor → (mean, σ) with the paper's fixed σ = 0.055.
