@@ -420,3 +420,69 @@ def test_gearbox_friction_fits_back():
     plain = fitter.fit(Combo((fx.LoadFriction(),), tr))
     assert abs(full.x[0] - 0.25) < 0.05 and abs(full.x[1] - 0.12) < 0.05
     assert full.train_gap < 0.5 * plain.train_gap
+
+
+# ----------------------------------------------------------------------------- gear play
+
+
+def _hold(sc, u: float, truth: dict, seconds: float = 3.0) -> float:
+    """Where the servo's pendulum comes to rest under a constant command ``u``."""
+    t = np.arange(int(seconds * sc.rate)) / sc.rate
+    return float(synthesize(sc, truth, t, np.full((len(t), 1), u), 0.0, np.random.default_rng(0)).qpos[-1, 0])
+
+
+def _open_loop(sc, u: float, effect: fx.Effect, x: float, seconds: float = 3.0) -> float:
+    from crisp_gym.sim2real.bench import _template
+
+    t = np.arange(int(seconds * sc.rate)) / sc.rate
+    tr = _template(sc, t, np.full((len(t), 1), u))
+    inputs = Combo((effect,), tr).inputs(np.array([x]), [tr])
+    return float(Replayer([tr], make_windows([tr], 1.0)).open_loop_states(inputs)[0][0][-1, 0])
+
+
+@pytest.mark.parametrize("u", [0.8, -0.8])
+def test_gear_play_rests_a_half_width_short_on_the_load_side(u: float) -> None:
+    """Gravity holds the gear on one side: the joint rests where the nominal servo rests for a
+    command ``half_width`` closer to hanging, in the library's model and in the bench's rotor
+    with a real gap (which the tendon limit's compliance lets sag a little further). The play
+    operator on the command does not move the rest at all."""
+    sc = scenario("servo", BenchConfig())
+    g = 0.03
+    nominal = {"family": "none"}
+    shifted = _hold(sc, u - np.sign(u) * g, nominal)
+    assert abs(_hold(sc, u, nominal) - shifted) > 0.5 * g  # the known answer is not the nominal one
+    assert _open_loop(sc, u, fx.GearPlay(), g) == pytest.approx(shifted, abs=0.05 * g)
+    rotor = _hold(sc, u, {"family": "backlash", "effect": "gear_play", "joint": None, "x": [g], "x0": [0.01]})
+    assert rotor == pytest.approx(shifted, abs=0.2 * g)
+    assert _open_loop(sc, u, fx.Backlash(), g) == pytest.approx(_hold(sc, u, nominal), abs=1e-9)
+
+
+def test_state_commands_step_as_the_plain_rollout() -> None:
+    """Stepping one sample at a time with a command hook that changes nothing predicts what the
+    one-call rollout predicts; a hook that holds the motor's target on the joint stops the drive."""
+    sc, tr = _servo_trajectory({"family": "none"}, seed=3)
+    rep = Replayer([tr], make_windows([tr], 0.3))
+    plain = Combo((), tr).inputs(np.zeros(0), [tr])
+    same = replace(plain, command=[lambda ctrl, qpos: ctrl])
+    np.testing.assert_allclose(rep.simulate([same]), rep.simulate([plain]), rtol=0, atol=1e-12)
+    held = replace(plain, command=[lambda ctrl, qpos: np.broadcast_to(qpos[:, None, :], ctrl.shape).copy()])
+    assert not np.allclose(rep.simulate([held]), rep.simulate([plain]), atol=1e-3)
+
+
+def test_gear_play_is_fitted_back_from_a_real_gap() -> None:
+    """On the arm, a log made with a rotor and a real gap in one joint's gear train: the
+    library's massless-motor gear play finds the gap's half-width and explains the log better
+    than the play operator on the command or Coulomb friction."""
+    from crisp_gym.sim2real.bench import driven_joints
+
+    sc = scenario("arm", BenchConfig())
+    rng = np.random.default_rng(1)
+    t, u = commands(sc, rng)
+    joint = driven_joints(sc)[1]
+    truth = {"family": "backlash", "effect": "gear_play", "joint": joint, "x": [0.02], "x0": [0.01]}
+    tr = bind(synthesize(sc, truth, t, u, 1.0, rng), sc.model)
+    fitter = Fitter(Replayer([tr], make_windows([tr], 0.3)))
+    gear = fitter.fit(Combo((fx.GearPlay(joints=(joint,)),), tr))
+    assert gear.x[0] == pytest.approx(0.02, rel=0.15)
+    for other in (fx.Backlash(joints=(joint,)), fx.CoulombFriction(joints=(joint,))):
+        assert gear.train_gap < 0.6 * fitter.fit(Combo((other,), tr)).train_gap

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import json
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import mujoco
@@ -44,11 +46,11 @@ from crisp_gym.sim2real.models import (
     SERVO_ACTUATOR,
     SERVO_JOINT,
     ServoConfig,
-    build_arm,
-    build_humanoid_bench,
-    build_rail_leg,
-    build_servo_pendulum,
-    load_go2_fixed_base,
+    build_arm_spec,
+    build_humanoid_bench_spec,
+    build_rail_leg_spec,
+    build_servo_pendulum_spec,
+    load_go2_fixed_base_spec,
 )
 from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, nominal_inputs
 
@@ -90,8 +92,9 @@ class BenchConfig:
 @dataclass(frozen=True)
 class Scenario:
     """A model and how to command it: rate, duration, logged joints, actuators, base command
-    and amplitude (per actuator), encoder quantum and noise, and the noise of logged
-    velocities (None: the log has none, as in the real servo and Go2 logs)."""
+    and amplitude (per actuator), encoder quantum and noise, the noise of logged velocities
+    (None: the log has none, as in the real servo and Go2 logs), and the spec the model is
+    compiled from (hidden effects the library models only approximately are built into it)."""
 
     name: str
     model: mujoco.MjModel
@@ -104,19 +107,28 @@ class Scenario:
     quantum: float
     sigma: float
     sigma_v: float | None = None
+    spec: Callable[[], mujoco.MjSpec] | None = None
 
 
 def scenario(name: str, cfg: BenchConfig) -> Scenario:
+    specs = {"servo": partial(build_servo_pendulum_spec, ServoConfig(kp=400)),
+             "go2": partial(load_go2_fixed_base_spec, cfg.go2_xml), "humanoid": build_humanoid_bench_spec,
+             "arm": build_arm_spec, "rail_leg": build_rail_leg_spec}
+    if name not in specs:
+        raise ValueError(f"unknown bench model {name!r}; expected servo, go2, humanoid, arm or rail_leg")
+    spec = specs[name]
+    return replace(_scenario(name, spec().compile()), spec=spec)
+
+
+def _scenario(name: str, model: mujoco.MjModel) -> Scenario:
     if name == "servo":
-        return Scenario(name, build_servo_pendulum(ServoConfig(kp=400)), (SERVO_JOINT,), (SERVO_ACTUATOR,), 200.0, 6.0,
+        return Scenario(name, model, (SERVO_JOINT,), (SERVO_ACTUATOR,), 200.0, 6.0,
                         np.zeros(1), np.full(1, 0.9), 2 * np.pi / 4096, 0.0)
     if name == "go2":
-        model = load_go2_fixed_base(cfg.go2_xml)
         acts = tuple(model.actuator(i).name for i in range(model.nu))
         return Scenario(name, model, GO2_JOINTS, acts, 200.0, 5.0, np.tile([0.0, 0.9, -1.8], 4), np.full(12, 0.25),
                         2 * np.pi / 32768, 2e-4)
     if name == "humanoid":
-        model = build_humanoid_bench()
         pitch = {"Hip": -0.1, "Knee": 0.25, "Ankle": -0.1, "Toe": 0.0}
         base = np.array([pitch[j.split("_")[1]] if j.endswith("_y") else 0.0 for j in HUMANOID_BENCH_JOINTS])
         amplitude = np.array([0.2 if j.endswith("_y") else 0.06 for j in HUMANOID_BENCH_JOINTS])
@@ -128,14 +140,42 @@ def scenario(name: str, cfg: BenchConfig) -> Scenario:
     if name == "arm":
         # a 14-bit encoder, as on many arm joints' motor side divided down (here: at the joint)
         base = np.array([0.0, 0.6, -1.2, 0.0, 0.6, 0.0])
-        return Scenario(name, build_arm(), ARM_JOINTS, ARM_JOINTS, 200.0, 5.0, base,
+        return Scenario(name, model, ARM_JOINTS, ARM_JOINTS, 200.0, 5.0, base,
                         np.array([0.6, 0.3, 0.4, 0.8, 0.5, 1.0]), 2 * np.pi / 16384, 2e-4)
-    if name == "rail_leg":
-        # the hip sways the foot fore and aft, the knee bends it from stance (trunk carried) to a
-        # crouch deep enough that the trunk rests on its stop and the foot swings
-        return Scenario(name, build_rail_leg(), RAIL_LEG_JOINTS, RAIL_LEG_ACTUATORS, 200.0, 5.0, np.array([0.6, -1.3]),
-                        np.array([0.35, 0.8]), 2 * np.pi / 16384, 2e-4)
-    raise ValueError(f"unknown bench model {name!r}; expected servo, go2, humanoid, arm or rail_leg")
+    # the hip sways the foot fore and aft, the knee bends it from stance (trunk carried) to a
+    # crouch deep enough that the trunk rests on its stop and the foot swings
+    return Scenario(name, model, RAIL_LEG_JOINTS, RAIL_LEG_ACTUATORS, 200.0, 5.0, np.array([0.6, -1.3]),
+                    np.array([0.35, 0.8]), 2 * np.pi / 16384, 2e-4)
+
+
+def add_gear_play(spec: mujoco.MjSpec, joint: str, half_width: float, start: float,
+                  rotor_inertia: float) -> mujoco.MjSpec:
+    """A real play in ``joint``'s gear train, built into ``spec`` (in place): its actuators drive
+    a rotor of their own (a hinge on the world starting at ``start``, the joint's first
+    position), and a fixed tendon, rotor minus joint, limited to ±``half_width``, couples the
+    two. Inside the gap the rotor turns freely and the joint feels no motor torque; at either
+    end the tendon's limit takes the torque, the rotor striking it. The joint's armature (the
+    motor's reflected inertia) moves to the rotor; a joint without one gets a rotor of
+    ``rotor_inertia``. The bench's truth for :class:`~crisp_gym.sim2real.effects.GearPlay`,
+    which models it without the rotor (a massless motor)."""
+    target = spec.joint(joint)
+    rotor_name = f"{joint}_rotor"
+    rotor = spec.worldbody.add_body(name=rotor_name, mass=1e-3, inertia=[1e-6, 1e-6, 1e-6],
+                                    explicitinertial=True)
+    rotor.add_joint(name=rotor_name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
+                    armature=target.armature or rotor_inertia, ref=start)
+    target.armature = 0.0
+    driven = [a for a in spec.actuators if a.target == joint]
+    if not driven:
+        raise ValueError(f"no actuator drives {joint!r}")
+    for actuator in driven:
+        actuator.target = rotor_name
+    # as stiff as the time step allows (MuJoCo needs a time constant of at least two steps)
+    play = spec.add_tendon(name=f"{joint}_play", limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                           range=[-half_width, half_width], solref_limit=[2 * spec.option.timestep, 1.0])
+    play.wrap_joint(rotor_name, 1.0)
+    play.wrap_joint(joint, -1.0)
+    return spec
 
 
 def _actuator_of(sc: Scenario, joint: str) -> int:
@@ -236,6 +276,7 @@ def _draw_effect(sc: Scenario, tr: Trajectory, rng: np.random.Generator, cfg: Be
         "torque_saturation": lambda: [min(rng.uniform(0.5, 0.8) * float(np.percentile(demand, 98, axis=0).max())
                                           / effect._reference(tr)[cols].max(), 0.9)],
         "backlash": lambda: [rng.uniform(0.01, 0.03)],
+        "gear_play": lambda: [rng.uniform(0.01, 0.03)],
         "encoder_bias": lambda: [rng.choice([-1, 1]) * rng.uniform(0.03, 0.08)],
         "mass_scale": lambda: [rng.choice([rng.uniform(0.4, 0.6), rng.uniform(1.6, 2.2)])],
         "com_shift": lambda: list(rng.choice([-1, 1], 2) * rng.uniform(0.15, 0.4, 2) * lever),
@@ -289,15 +330,20 @@ def synthesize(sc: Scenario, truth: dict, t: np.ndarray, u: np.ndarray, noise: f
                rng: np.random.Generator) -> RealLog:
     """The "real" log: the nominal model with the hidden effect, seen by a noisy encoder."""
     tr = _template(sc, t, u)
+    parts = [] if truth["family"] in ("none", "outside") else truth.get("parts", [truth])
+    gears = [part for part in parts if part["effect"] == "gear_play"]
+    if gears:  # built into the model (a rotor and a gap), not the library's approximation of it
+        spec = sc.spec()
+        inertia = fx.inertia_scale(tr)
+        for part in gears:
+            for joint in [part["joint"]] if part["joint"] else driven_joints(sc):
+                c = sc.joints.index(joint)
+                add_gear_play(spec, joint, part["x"][0], tr.log.qpos[0, c], 0.1 * inertia[c])
+        tr = bind(tr.log, spec.compile(), validate=False)
+        parts = [part for part in parts if part["effect"] != "gear_play"]
     rep = Replayer([tr], make_windows([tr], 1.0), 2)
-    if truth["family"] == "none":
-        combo, x = Combo((), tr), np.zeros(0)
-    elif truth["family"] == "outside":
-        combo, x = Combo((), tr), np.zeros(0)
-    else:  # one effect, or several ("parts") acting together
-        parts = truth.get("parts", [truth])
-        combo = Combo(tuple(_effect_of(part) for part in parts), tr)
-        x = np.concatenate([part["x"] for part in parts])
+    combo = Combo(tuple(_effect_of(part) for part in parts), tr)
+    x = np.concatenate([part["x"] for part in parts]) if parts else np.zeros(0)
     inputs = combo.inputs(x, [tr])
     if truth.get("kind") == "missing_spring":
         model = inputs.models[0].__copy__()

@@ -54,7 +54,7 @@ class Combo:
     def inputs(self, x: np.ndarray, trajs: list[Trajectory]) -> SimInputs:
         """The models and signals of every trajectory with the effects applied at ``x``."""
         parts = self.split(x)
-        models, ctrl, qpos, qvel, friction = [], [], [], [], []
+        models, ctrl, qpos, qvel, friction, command = [], [], [], [], [], []
         for tr in trajs:
             model = tr.model
             if any(e.touches_model for e in self.effects):
@@ -74,7 +74,9 @@ class Combo:
             qvel.append(sig.qvel)
             items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_friction]
             friction.append(partial(_state_friction, items, tr, model, sig.ctrl) if items else None)
-        return SimInputs(models, ctrl, qpos, qvel, friction)
+            items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_command]
+            command.append(partial(_state_command, items, tr) if items else None)
+        return SimInputs(models, ctrl, qpos, qvel, friction, command)
 
 
 class Frozen(Effect):
@@ -86,6 +88,7 @@ class Frozen(Effect):
         self.effect, self.x = effect, np.asarray(x, dtype=float)
         self.name, self.family = effect.name, effect.family
         self.touches_model, self.state_friction = effect.touches_model, effect.state_friction
+        self.state_command = effect.state_command
         self.changes_inertia = effect.changes_inertia
 
     @property
@@ -110,6 +113,9 @@ class Frozen(Effect):
     def friction(self, x, tr, model, ctrl, enabled, qpos, qvel) -> np.ndarray:
         return self.effect.friction(self.x, tr, model, ctrl, enabled, qpos, qvel)
 
+    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
+        return self.effect.command(self.x, tr, ctrl, qpos)
+
 
 def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, model, ctrl: np.ndarray,
                     idx: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
@@ -117,6 +123,15 @@ def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, mode
     :data:`~crisp_gym.sim2real.replay.FrictionFn` once bound to a trajectory)."""
     u, enabled = ctrl[idx * tr.nsub], tr.enabled[idx]
     return sum(e.friction(xe, tr, model, u, enabled, qpos, qvel) for e, xe in items)
+
+
+def _state_command(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, ctrl: np.ndarray,
+                   qpos: np.ndarray) -> np.ndarray:
+    """The commands after every state-dependent command effect of ``items`` (a
+    :data:`~crisp_gym.sim2real.replay.CommandFn` once bound to a trajectory)."""
+    for e, xe in items:
+        ctrl = e.command(xe, tr, ctrl, qpos)
+    return ctrl
 
 
 def residuals(replayer: Replayer, inputs: list[SimInputs]) -> np.ndarray:

@@ -13,7 +13,9 @@ Friction that depends on the state (load-dependent, Stribeck) cannot live in a f
 ``MjModel``: such candidates are stepped one log sample at a time, each window with its own
 model copy whose ``dof_frictionloss`` is set before every sample. In replay windows the
 friction follows the *logged* state (the window stays close to it, as with the logged
-initial velocity); in open loop (synthesis) it follows the simulated state.
+initial velocity); in open loop (synthesis) it follows the simulated state. Commands that
+depend on the state (a gear's play) are stepped the same way, from the *simulated* state
+everywhere: computed from the logged one, they would pull each window onto the log.
 """
 
 from __future__ import annotations
@@ -189,22 +191,31 @@ FrictionFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 """State-dependent dry friction: ``(sample indices (k,), positions (k, n), velocities
 (k, n)) -> added frictionloss (k, n)`` on the logged joints' dofs."""
 
+CommandFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""State-dependent commands: ``(commands over one log sample (k, nsub, nu), the logged joints'
+simulated positions at its start (k, n)) -> the commands the actuators see (k, nsub, nu)``."""
+
 
 @dataclass
 class SimInputs:
     """What one candidate model feeds the replay, per trajectory: the models (before
     switching actuators off), fine-grid commands, the log seen in the model's frame
     (the initial states and the targets, after measurement effects are undone) and,
-    where the candidate has state-dependent friction, its :data:`FrictionFn`."""
+    where the candidate has state-dependent friction or commands, its :data:`FrictionFn` or
+    :data:`CommandFn`."""
 
     models: list[mujoco.MjModel]
     ctrl: list[np.ndarray]
     qpos: list[np.ndarray]
     qvel: list[np.ndarray]
     friction: list[FrictionFn | None] | None = None
+    command: list[CommandFn | None] | None = None
 
     def friction_of(self, ti: int) -> FrictionFn | None:
         return None if self.friction is None else self.friction[ti]
+
+    def command_of(self, ti: int) -> CommandFn | None:
+        return None if self.command is None else self.command[ti]
 
 
 def nominal_inputs(trajs: list[Trajectory]) -> SimInputs:
@@ -253,6 +264,7 @@ class Replayer:
         fine = np.arange(self.nstep)
         stepped = np.zeros(nc * nw, dtype=bool)
         added = np.zeros((nc * nw, w.size - 1, len(self._qadr)))
+        commands: list[CommandFn | None] = [None] * (nc * nw)
         for c, inp in enumerate(candidates):
             rows = slice(c * nw, (c + 1) * nw)
             for ti, tr in enumerate(self.trajs):
@@ -276,6 +288,11 @@ class Replayer:
                            inp.qvel[ti][idx].reshape(-1, len(self._dadr)))
                     added[c * nw + sel] = f.reshape(len(sel), w.size - 1, -1)
                     stepped[c * nw + sel] = True
+                command = inp.command_of(ti)
+                if command is not None:
+                    for k in sel:
+                        commands[c * nw + k] = command
+                    stepped[c * nw + sel] = True
         q = np.empty((nc * nw, w.size - 1, len(self._qadr)))
         plain = np.flatnonzero(~stepped)
         if len(plain):
@@ -284,21 +301,29 @@ class Replayer:
             q[plain] = states[:, self.nsub - 1::self.nsub, 1:nq1][:, :, self._qadr]
         rows = np.flatnonzero(stepped)
         if len(rows):
-            q[rows] = self._stepped([models[r] for r in rows], init[rows], ctrl[rows], added[rows])
+            q[rows] = self._stepped([models[r] for r in rows], init[rows], ctrl[rows], added[rows],
+                                    [commands[r] for r in rows])
         return q.reshape(nc, nw, w.size - 1, -1)
 
     def _stepped(self, models: list[mujoco.MjModel], init: np.ndarray, ctrl: np.ndarray,
-                 added: np.ndarray) -> np.ndarray:
+                 added: np.ndarray, commands: list[CommandFn | None]) -> np.ndarray:
         """Rollouts one log sample at a time, each row's frictionloss set to its nominal
-        value plus ``added`` (rows, samples, n) before every sample."""
+        value plus ``added`` (rows, samples, n) and its commands passed through its
+        :data:`CommandFn` (if any) before every sample."""
         own = [m.__copy__() for m in models]
         base = [m.dof_frictionloss[self._dadr].copy() for m in own]
+        groups = [(fn, np.array([r for r, g in enumerate(commands) if g is fn]))
+                  for fn in {id(f): f for f in commands if f is not None}.values()]
         q = np.empty(added.shape)
         state = init
         for k in range(added.shape[1]):
             for m, b, a in zip(own, base, added[:, k]):
                 m.dof_frictionloss[self._dadr] = np.maximum(b + a, 0.0)
             u = ctrl[:, k * self.nsub:(k + 1) * self.nsub]
+            if groups:
+                u = u.copy()
+                for fn, rows in groups:
+                    u[rows] = fn(u[rows], state[rows][:, 1 + self._qadr])
             states, _ = rollout.rollout(own, self._datas, state, u, persistent_pool=True)
             state = states[:, -1]
             q[:, k] = state[:, 1 + self._qadr]
@@ -327,26 +352,29 @@ class Replayer:
             en = tr.enabled
             cuts = np.flatnonzero(np.any(en[1:] != en[:-1], axis=1)) + 1
             bounds = np.concatenate([[0], cuts, [t_len]])
-            fn = inputs.friction_of(ti)
+            fn, command = inputs.friction_of(ti), inputs.command_of(ti)
             for a, b in zip(bounds[:-1], bounds[1:]):
                 n_samples = b - a if b < t_len else b - a - 1
                 if n_samples <= 0:
                     continue
                 model = tr.model_for(inputs.models[ti], tuple(bool(x) for x in en[a]))
-                if fn is None:
+                if fn is None and command is None:
                     u = inputs.ctrl[ti][a * self.nsub:(a + n_samples) * self.nsub][None]
                     states, _ = rollout.rollout(model, self._datas[0], state[None], u)
                     q[a + 1:a + 1 + n_samples] = states[0, self.nsub - 1::self.nsub][:, 1 + self._qadr]
                     v[a + 1:a + 1 + n_samples] = states[0, self.nsub - 1::self.nsub][:, nq1 + self._dadr]
                     state = states[0, -1]
                     continue
-                # State-dependent friction follows the simulated state, sample by sample.
+                # State-dependent friction and commands follow the simulated state, sample by sample.
                 own = model.__copy__()
                 base = own.dof_frictionloss[self._dadr].copy()
                 for k in range(a, a + n_samples):
-                    f = fn(np.array([k]), state[None, 1 + self._qadr], state[None, nq1 + self._dadr])[0]
-                    own.dof_frictionloss[self._dadr] = np.maximum(base + f, 0.0)
+                    if fn is not None:
+                        f = fn(np.array([k]), state[None, 1 + self._qadr], state[None, nq1 + self._dadr])[0]
+                        own.dof_frictionloss[self._dadr] = np.maximum(base + f, 0.0)
                     u = inputs.ctrl[ti][k * self.nsub:(k + 1) * self.nsub][None]
+                    if command is not None:
+                        u = command(u, state[None, 1 + self._qadr])
                     states, _ = rollout.rollout(own, self._datas[0], state[None], u)
                     state = states[0, -1]
                     q[k + 1], v[k + 1] = state[1 + self._qadr], state[nq1 + self._dadr]

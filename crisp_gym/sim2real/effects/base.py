@@ -57,6 +57,7 @@ class Effect:
     touches_model = False
     changes_inertia = False  # edits masses, centres of mass or inertias: the model's constants are recomputed
     state_friction = False
+    state_command = False  # the commands depend on the simulated state (stepped one log sample at a time)
     per_joint_allowed = True
     focus_allowed = False
     refine = 1  # how many of the best start points are descended from (several local minima)
@@ -131,6 +132,12 @@ class Effect:
                  qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
         """Dry friction (k, n) added to the logged joints at k states, given the commands
         (k, nu) and powered actuators (k, nu) there (only if ``state_friction``)."""
+        raise NotImplementedError
+
+    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
+        """The commands the actuators see over one log sample, (k, nsub, nu), given the commands
+        (k, nsub, nu) and the logged joints' simulated positions (k, n) at its start (only if
+        ``state_command``)."""
         raise NotImplementedError
 
 

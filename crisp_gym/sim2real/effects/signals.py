@@ -1,4 +1,5 @@
-"""Effects on the signals: actuator and sensor delay, backlash, encoder bias."""
+"""Effects on the signals: actuator and sensor delay, backlash (on the command, and as a gear's
+play), encoder bias."""
 
 from __future__ import annotations
 
@@ -92,6 +93,37 @@ class Backlash(Effect):
         ctrl = sig.ctrl.copy()
         ctrl[:, acts] = np.repeat(y, tr.nsub, axis=0)[:len(ctrl)]
         return Signals(ctrl, sig.qpos, sig.qvel)
+
+
+class GearPlay(Effect):
+    """Play in the gear train between motor and joint, of half-width ``half_width``: the motor
+    turns freely inside the gap and drives the joint only from the side it pushes on. A load
+    keeps the gear on its side, so the joint settles ``half_width`` short of the command there,
+    and the side flips with the sign of the torque the gear transmits (``u - q``), not with the
+    command's direction as the play operator of :class:`Backlash` does. The motor is taken as
+    massless: it crosses the gap at once (no impacts), and its damping stays on the joint.
+    Commands follow the simulated state, one log sample at a time.
+    """
+
+    name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
+    state_command = True
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return [Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        return [np.array([b]) for b in (0.003, 0.01, 0.03, 0.08)]
+
+    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
+        # The motor's target stands ``half_width`` back from the command on the side the gear
+        # pushes; inside the gap it stands on the joint (no torque from the position error).
+        out = ctrl.copy()
+        cols = self.columns(tr)
+        for c, drives in zip(cols, self.actuators_of(tr, cols)):
+            if len(drives):
+                u = ctrl[:, :, drives]
+                out[:, :, drives] = u - np.clip(u - qpos[:, c, None, None], -x[0], x[0])
+        return out
 
 
 class EncoderBias(Effect):
