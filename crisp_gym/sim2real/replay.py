@@ -312,8 +312,10 @@ class Replayer:
         :data:`CommandFn` (if any) before every sample."""
         own = [m.__copy__() for m in models]
         base = [m.dof_frictionloss[self._dadr].copy() for m in own]
-        groups = [(fn, np.array([r for r, g in enumerate(commands) if g is fn]))
-                  for fn in {id(f): f for f in commands if f is not None}.values()]
+        groups: dict[int, tuple[CommandFn, list[int]]] = {}  # the rows of each candidate's command
+        for r, fn in enumerate(commands):
+            if fn is not None:
+                groups.setdefault(id(fn), (fn, []))[1].append(r)
         q = np.empty(added.shape)
         state = init
         for k in range(added.shape[1]):
@@ -322,7 +324,7 @@ class Replayer:
             u = ctrl[:, k * self.nsub:(k + 1) * self.nsub]
             if groups:
                 u = u.copy()
-                for fn, rows in groups:
+                for fn, rows in groups.values():
                     u[rows] = fn(u[rows], state[rows][:, 1 + self._qadr])
             states, _ = rollout.rollout(own, self._datas, state, u, persistent_pool=True)
             state = states[:, -1]
