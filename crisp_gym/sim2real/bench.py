@@ -338,7 +338,8 @@ def synthesize(sc: Scenario, truth: dict, t: np.ndarray, u: np.ndarray, noise: f
         for part in gears:
             for joint in [part["joint"]] if part["joint"] else driven_joints(sc):
                 c = sc.joints.index(joint)
-                add_gear_play(spec, joint, part["x"][0], tr.log.qpos[0, c], 0.1 * inertia[c])
+                # a joint without armature: a rotor light enough to add almost nothing engaged
+                add_gear_play(spec, joint, part["x"][0], tr.log.qpos[0, c], 0.01 * inertia[c])
         tr = bind(tr.log, spec.compile(), validate=False)
         parts = [part for part in parts if part["effect"] != "gear_play"]
     rep = Replayer([tr], make_windows([tr], 1.0), 2)
