@@ -187,7 +187,8 @@ def paper_profile(**overrides: Any) -> TrainConfig:
 def cpu_profile(**overrides: Any) -> TrainConfig:
     """A setup for a small CPU machine (aimed at 2 cores), where the PPO update, not physics, is the cost.
 
-    Small MLPs (actor and critic 256-256, a smaller PointNet), 64 envs × 16 steps per iteration,
+    Small MLPs (actor and critic 256-256; scene-aware, the points encoded flat: ``FlatPoints``
+    instead of a PointNet), 64 envs × 16 steps per iteration,
     2 epochs of 512-sample minibatches, actor lr 3e-5 and critic lr 5e-4, rewards scaled by 0.05
     with the energy penalty capped at 2 per step, adaptive start sampling, a 20 M frame budget and
     an evaluation every 500 iterations. ``docs/training.md`` ("The CPU profile") gives the
@@ -200,7 +201,7 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
                        critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
                        start_sampling="adaptive", eval_every=500, eval_episodes=32,
                        model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(256, 256),
-                                         pointnet_hidden=(32, 64)))
+                                         point_encoder="flat", pointnet_hidden=(32, 64)))
     return replace(base, **overrides)
 
 
