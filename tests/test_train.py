@@ -356,6 +356,23 @@ def test_checkpoint_round_trip_and_resume(trained_run, tmp_path: Path) -> None:
         train(replace(cfg, output=tmp_path / "nothing", resume=True))
 
 
+def test_resuming_compares_only_what_the_networks_are_built_from(tmp_path: Path) -> None:
+    """A scene-blind run has no point encoder: a profile that changes it still resumes the run
+    (and warm-starts from its policy); a scene-aware run is refused, naming the option."""
+    from crisp_gym.train.checkpoints import check_resumable
+    from crisp_gym.train.config import cpu_profile
+
+    pointnet = replace(cpu_profile(), model=replace(cpu_profile().model, point_encoder="pointnet"))
+    flat = replace(pointnet, model=replace(pointnet.model, point_encoder="flat", latent_dim=64))
+    check_resumable(pointnet, flat)  # blind MLP: neither the encoder nor the transformer's width builds anything
+    with pytest.raises(ValueError, match=r"model.point_encoder differ.*model.point_encoder='pointnet'"):
+        check_resumable(replace(pointnet, scene_aware=True), replace(flat, scene_aware=True))
+    with pytest.raises(ValueError, match="model.mlp_actor_hidden"):
+        check_resumable(pointnet, replace(pointnet, model=replace(pointnet.model, mlp_actor_hidden=(64,))))
+    with pytest.raises(ValueError, match="scene_aware"):
+        check_resumable(pointnet, replace(pointnet, scene_aware=True))
+
+
 @pytest.mark.parametrize("model, num_points", [(TINY_TRANSFORMER, N_POINTS),
                                                (replace(SMALL_MLP, point_encoder="flat"), 48)],
                          ids=["pointnet", "flat"])

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,6 +25,21 @@ if TYPE_CHECKING:
 
 ARCHITECTURE_FIELDS = ("scene_aware", "model", "normalize_obs")
 """Config fields a run's weights are tied to: resuming or warm-starting must keep them."""
+
+_TRANSFORMER_ONLY = ("latent_dim", "ff_dim", "num_layers", "num_heads", "num_point_tokens")
+_SCENE_AWARE_ONLY = ("point_encoder", "pointnet_hidden", "num_point_tokens")
+
+
+def architecture(cfg: TrainConfig) -> dict[str, Any]:
+    """The :data:`ARCHITECTURE_FIELDS` of ``cfg`` (the model's options as ``model.<name>``) without
+    the model options that build nothing in its networks: a scene-blind actor has no point
+    encoder, an MLP actor no transformer, a transformer no MLP."""
+    unused = set(_TRANSFORMER_ONLY) if cfg.model.actor == "mlp" else {"mlp_actor_hidden"}
+    if not cfg.scene_aware:
+        unused |= set(_SCENE_AWARE_ONLY)
+    out = {f"model.{k}": v for k, v in asdict(cfg.model).items() if k not in unused}
+    out.update({name: getattr(cfg, name) for name in ARCHITECTURE_FIELDS if name != "model"})
+    return out
 
 
 def save_checkpoint(path: str | Path, agent: Agent, optimizer: torch.optim.Optimizer, iteration: int,
@@ -69,11 +85,13 @@ def load_policy(path: str | Path, device: torch.device | str = "cpu") -> tuple[F
 
 
 def check_resumable(saved: TrainConfig, cfg: TrainConfig, action: str = "resume") -> None:
-    """Refuse to continue ``saved``'s weights under a config with another architecture."""
-    changed = [name for name in ARCHITECTURE_FIELDS if getattr(saved, name) != getattr(cfg, name)]
+    """Refuse to continue ``saved``'s weights under a config with another :func:`architecture`."""
+    before, now = architecture(saved), architecture(cfg)
+    changed = [name for name in before.keys() | now.keys() if before.get(name) != now.get(name)]
     if changed:
+        changed.sort()
         raise ValueError(f"cannot {action}: {', '.join(changed)} differ from the saved run's "
-                         f"({', '.join(f'{n}={getattr(saved, n)!r}' for n in changed)})")
+                         f"({', '.join(f'{n}={before.get(n)!r}' for n in changed)})")
 
 
 def evaluation_score(results: dict[str, dict[str, float]]) -> float:
