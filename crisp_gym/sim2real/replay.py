@@ -309,9 +309,13 @@ class Replayer:
                  added: np.ndarray, commands: list[CommandFn | None]) -> np.ndarray:
         """Rollouts one log sample at a time, each row's frictionloss set to its nominal
         value plus ``added`` (rows, samples, n) and its commands passed through its
-        :data:`CommandFn` (if any) before every sample."""
-        own = [m.__copy__() for m in models]
-        base = [m.dof_frictionloss[self._dadr].copy() for m in own]
+        :data:`CommandFn` (if any) before every sample. Only rows with friction to add get a
+        model copy of their own (copying a model costs more than stepping it a sample)."""
+        rubbing = np.flatnonzero(np.any(added != 0.0, axis=(1, 2)))
+        own = list(models)
+        for r in rubbing:
+            own[r] = models[r].__copy__()
+        base = [own[r].dof_frictionloss[self._dadr].copy() for r in rubbing]
         groups: dict[int, tuple[CommandFn, list[int]]] = {}  # the rows of each candidate's command
         for r, fn in enumerate(commands):
             if fn is not None:
@@ -319,8 +323,8 @@ class Replayer:
         q = np.empty(added.shape)
         state = init
         for k in range(added.shape[1]):
-            for m, b, a in zip(own, base, added[:, k]):
-                m.dof_frictionloss[self._dadr] = np.maximum(b + a, 0.0)
+            for r, b in zip(rubbing, base):
+                own[r].dof_frictionloss[self._dadr] = np.maximum(b + added[r, k], 0.0)
             u = ctrl[:, k * self.nsub:(k + 1) * self.nsub]
             if groups:
                 u = u.copy()

@@ -48,8 +48,9 @@ class Effect:
     parameter per joint (``per_joint_allowed``) and confined to the joint with the largest
     gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
     points the fit descends from, for effects with several local minima. ``refines``: the
-    name of a simpler effect this one contains as a special case; the diagnosis fits it only
-    where that one, in the same scope, ranks among the best, from :meth:`nested_starts`.
+    name of a simpler effect this one elaborates (gearbox friction contains load friction as
+    a special case; gear play is the physical form of the play operator); the diagnosis fits
+    it only where that one, in the same scope, ranks among the best, from :meth:`nested_starts`.
     """
 
     name = "effect"
@@ -61,7 +62,7 @@ class Effect:
     per_joint_allowed = True
     focus_allowed = False
     refine = 1  # how many of the best start points are descended from (several local minima)
-    refines: str | None = None  # the simpler effect this one nests (fitted only where that one ranks well)
+    refines: str | None = None  # the simpler effect this one elaborates (fitted only where that one ranks well)
 
     def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
         self.joints = joints

@@ -102,17 +102,23 @@ class GearPlay(Effect):
     and the side flips with the sign of the torque the gear transmits (``u - q``), not with the
     command's direction as the play operator of :class:`Backlash` does. The motor is taken as
     massless: it crosses the gap at once (no impacts), and its damping stays on the joint.
-    Commands follow the simulated state, one log sample at a time.
+    Commands follow the simulated state, one log sample at a time. Fitted where the play
+    operator ranks well (a log with play in it), from the play operator's half-width.
     """
 
     name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
     state_command = True
+    refines = "backlash"
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")]
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
         return [np.array([b]) for b in (0.003, 0.01, 0.03, 0.08)]
+
+    def nested_starts(self, simple: np.ndarray, tr: Trajectory) -> list[np.ndarray]:
+        b = max(float(simple[0]), 0.003)
+        return [np.array([b]), np.array([2.0 * b])]
 
     def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
         # The motor's target stands ``half_width`` back from the command on the side the gear
