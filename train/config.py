@@ -188,10 +188,9 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     """A setup for a small CPU machine (aimed at 2 cores), where the PPO update, not physics, is the cost.
 
     Small MLPs (actor and critic 256-256; scene-aware, the points encoded flat: ``FlatPoints``
-    instead of a PointNet), 64 envs × 16 steps per iteration,
-    2 epochs of 512-sample minibatches, actor lr 3e-5 and critic lr 5e-4, rewards scaled by 0.05
-    with the energy penalty capped at 2 per step, adaptive start sampling, a 20 M frame budget and
-    an evaluation every 500 iterations. ``docs/training.md`` ("The CPU profile") gives the
+    instead of a PointNet), 64 envs × 16 steps per iteration, 2 epochs of 512-sample minibatches,
+    actor lr 3e-5 and critic lr 5e-4, rewards scaled by 0.05 with the energy penalty capped at 2
+    per step, adaptive start sampling, a 20 M frame budget and an evaluation every 500 iterations. ``docs/training.md`` ("The CPU profile") gives the
     measurements behind each choice.
 
     Residual actions (the env's default) are kept: an untrained policy already tracks the
