@@ -148,8 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         clip = str(resolve_clip(args.clip))
         for name, scene, variant in variants:
             cfg = replace(variant, clip=clip, output=Path(tmp) / f"{name}-{scene}-{variant.model.point_encoder}",
-                          device=args.device,
-                          seed=args.seed, progress=False, checkpoint_every=10**9)
+                          device=args.device, seed=args.seed, progress=False, checkpoint_every=10**9)
             iterations = -(-args.frames // cfg.frames_per_iteration)
             cfg = replace(cfg, frames=(args.warmup + iterations) * cfg.frames_per_iteration)
             stats = measure(cfg, args.warmup)

@@ -176,8 +176,9 @@ def export_inference_policy(actor: nn.Module, directory: str | Path, track: Trac
             batch = torch.export.Dim("batch")
             shapes = {"proprio": {0: batch}, "targets": {0: batch}}
             if policy.scene_aware:
-                points = torch.export.Dim("num_points") if policy.fixed_num_points is None else None
-                shapes["points"] = {0: batch} if points is None else {0: batch, 1: points}
+                shapes["points"] = {0: batch}
+                if policy.fixed_num_points is None:  # a PointNet takes any number of points
+                    shapes["points"][1] = torch.export.Dim("num_points")
             with atomic_path(directory / "policy.onnx") as tmp:
                 torch.onnx.export(policy, example, str(tmp), input_names=names, output_names=["action"],
                                   dynamic_shapes=shapes, dynamo=True, opset_version=ONNX_OPSET,

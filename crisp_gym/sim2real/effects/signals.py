@@ -8,6 +8,10 @@ import numpy as np
 from crisp_gym.sim2real.effects.base import Effect, Param, Signals
 from crisp_gym.sim2real.replay import Trajectory
 
+# A play's half-width, for the play operator and the gear alike: bounds, step and start points.
+_HALF_WIDTH = Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")
+_HALF_WIDTH_STARTS = (0.003, 0.01, 0.03, 0.08)
+
 
 def _shift(signal: np.ndarray, shift: float) -> np.ndarray:
     """``signal`` sampled ``shift`` samples later (negative: earlier), linearly
@@ -75,10 +79,10 @@ class Backlash(Effect):
     name, family, per_joint_allowed, focus_allowed = "backlash", "backlash", False, True
 
     def params(self, tr: Trajectory) -> list[Param]:
-        return [Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")]
+        return [_HALF_WIDTH]
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
-        return [np.array([b]) for b in (0.003, 0.01, 0.03, 0.08)]
+        return [np.array([b]) for b in _HALF_WIDTH_STARTS]
 
     def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
         acts = np.concatenate(self.actuators_of(tr, self.columns(tr)))
@@ -111,10 +115,10 @@ class GearPlay(Effect):
     refines = "backlash"
 
     def params(self, tr: Trajectory) -> list[Param]:
-        return [Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")]
+        return [_HALF_WIDTH]
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
-        return [np.array([b]) for b in (0.003, 0.01, 0.03, 0.08)]
+        return [np.array([b]) for b in _HALF_WIDTH_STARTS]
 
     def nested_starts(self, simple: np.ndarray, tr: Trajectory) -> list[np.ndarray]:
         b = max(float(simple[0]), 0.003)
