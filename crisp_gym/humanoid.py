@@ -181,6 +181,14 @@ class HumanoidConfig:
             :data:`BODY_NAMES`), e.g. from the user's HMR; overrides ``height`` for lengths.
         timestep: physics step in seconds (the paper simulates at 120 Hz).
         armature: rotor inertia added to every hinge (kg·m²); keeps stiff PD stable.
+        passive_damping: each servo's damping ``kd`` acts as passive damping at its hinge
+            (MuJoCo's actuator ``damping``), outside the torque clamp: the torque is
+            ``clip(kp (target − q), ±limit) − kd q̇``. MuJoCo integrates passive damping
+            implicitly always, but a clamped actuator's own damping only while the actuator is
+            below its limit: a saturated servo on a light body (a hand, a toe; 1e-4 kg·m²) then
+            turns explicitly at 120 Hz and whips round at hundreds of rad/s. ``False``: the damping
+            inside the clamp, ``clip(kp (target − q) − kd q̇, ±limit)``, as a drive's controller
+            computes it (the sim-to-real benchmark's robot models).
         friction: sliding, torsional and rolling friction of the body geoms.
         arena_memory: MuJoCo arena bytes per simulation (MJCF `<size memory>`); the default would be ~18 MB.
     """
@@ -190,6 +198,7 @@ class HumanoidConfig:
     rest_joints: np.ndarray | None = field(default=None, compare=False)
     timestep: float = 1.0 / 120.0
     armature: float = 0.02
+    passive_damping: bool = True
     friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
     arena_memory: int = 6 * 1024 * 1024
 
@@ -314,16 +323,21 @@ def build_humanoid_spec(config: HumanoidConfig | None = None) -> mujoco.MjSpec:
     for body in BODY_NAMES[1:]:
         group = gain_group(body)
         for axis in HINGE_AXES:
-            add_position_servo(spec, f"{body}_{axis}", group.kp, group.kd, group.torque_limit)
+            add_position_servo(spec, f"{body}_{axis}", group.kp, group.kd, group.torque_limit,
+                               passive_damping=cfg.passive_damping)
     return spec
 
 
 def add_position_servo(spec: mujoco.MjSpec, joint: str, kp: float, kv: float, torque_limit: float,
-                       name: str | None = None) -> mujoco.MjsActuator:
+                       name: str | None = None, passive_damping: bool = False) -> mujoco.MjsActuator:
     """A PD position actuator on ``joint`` (named ``name``, default the joint's name): ``ctrl``
-    is the target angle, unbounded, and the torque is clamped to ±``torque_limit``."""
+    is the target angle, unbounded, and the torque is clamped to ±``torque_limit``; with
+    ``passive_damping`` the damping ``kv`` is the actuator's passive damping, outside the clamp
+    (see :class:`HumanoidConfig`)."""
     act = spec.add_actuator(name=name or joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-    act.set_to_position(kp=kp, kv=kv)
+    act.set_to_position(kp=kp, kv=0.0 if passive_damping else kv)
+    if passive_damping:
+        act.damping = [kv, 0.0, 0.0]
     act.forcelimited = True
     act.forcerange = (-torque_limit, torque_limit)
     act.ctrllimited = False

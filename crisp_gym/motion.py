@@ -559,8 +559,7 @@ def level_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = 
     by about that angle (CMU's by 10-20°), and toes, tracked by one marker if at all, curl
     40° into the floor or flip by 80° within a few frames. Grounding then stands the body on a
     foot edge or on curled toe tips, centimetres above a flat stance, and the simulated toe's
-    stiff servo fights the floor at its torque limit, where MuJoCo's implicit damping no
-    longer applies and the light toe chatters at hundreds of rad/s.
+    stiff servo fights the floor at its torque limit.
 
     The roll (the foot turned about its length) is measured in the foot's planted frames (see
     :class:`StanceGrounding`), interpolated between them, low-passed and turned out of every

@@ -49,7 +49,11 @@ def test_mass_and_height_scale():
 def test_gains_and_ranges():
     model = build_humanoid()
     knee = model.actuator("L_Knee_y")
-    assert knee.gainprm[0] == GAIN_GROUPS["legs"].kp and knee.biasprm[2] == -GAIN_GROUPS["legs"].kd
+    assert knee.gainprm[0] == GAIN_GROUPS["legs"].kp and model.actuator_damping[knee.id] == GAIN_GROUPS["legs"].kd
+    assert knee.biasprm[2] == 0.0 and knee.forcerange[1] == GAIN_GROUPS["legs"].torque_limit
+    inside_model = build_humanoid(HumanoidConfig(passive_damping=False))
+    inside = inside_model.actuator("L_Knee_y")
+    assert inside.biasprm[2] == -GAIN_GROUPS["legs"].kd and inside_model.actuator_damping[inside.id] == 0.0
     assert model.actuator("Spine_x").gainprm[0] == 1000.0
     assert model.actuator("L_Elbow_z").gainprm[0] == 500.0
     assert model.actuator("R_Wrist_y").gainprm[0] == 300.0
@@ -84,3 +88,50 @@ def test_pd_holds_the_rest_pose_on_a_floor():
         mujoco.mj_step(model, data)
     assert np.all(np.isfinite(data.qpos)) and not any(w.number for w in data.warning)
     assert data.qpos[2] > 0.9  # still standing
+
+
+def _servo_torque(model: mujoco.MjModel, data: mujoco.MjData, joint: str) -> float:
+    return float(data.actuator_force[model.actuator(joint).id] + data.qfrc_damper[model.joint(joint).dofadr[0]])
+
+
+@pytest.mark.parametrize("passive", [True, False])
+def test_servo_torque_is_the_pd_law_below_its_limit(passive):
+    """Below the torque limit, damping inside the servo or passive at the hinge is the same
+    torque kp (target - q) - kd qdot (a known answer from the gain table)."""
+    model = build_humanoid(HumanoidConfig(passive_damping=passive))
+    data = mujoco.MjData(model)
+    group = GAIN_GROUPS["legs"]
+    data.qpos[model.joint("L_Knee_y").qposadr[0]] = 0.3
+    data.qvel[model.joint("L_Knee_y").dofadr[0]] = 1.5
+    data.ctrl[model.actuator("L_Knee_y").id] = 0.4
+    mujoco.mj_forward(model, data)
+    assert _servo_torque(model, data, "L_Knee_y") == pytest.approx(group.kp * 0.1 - group.kd * 1.5)
+
+
+def _largest_hinge_speed(model: mujoco.MjModel, seconds: float, sigma: float, seed: int) -> float:
+    """Stand the humanoid on a floor and drive every servo with targets ``sigma`` rad off its rest
+    pose, redrawn at 30 Hz: far enough that hands, wrists and toes saturate."""
+    rng = np.random.default_rng(seed)
+    data = mujoco.MjData(model)
+    fastest = 0.0
+    for step in range(int(seconds / model.opt.timestep)):
+        if step % 4 == 0:
+            data.ctrl[:] = rng.normal(0.0, sigma, model.nu)
+        mujoco.mj_step(model, data)
+        speed = np.abs(data.qvel[6:]).max()
+        fastest = max(fastest, speed if np.isfinite(speed) else np.inf)
+    return fastest
+
+
+def _on_floor(config: HumanoidConfig) -> mujoco.MjModel:
+    spec = build_humanoid_spec(config)
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=(5, 5, 0.1), contype=1, conaffinity=2)
+    return spec.compile()
+
+
+def test_saturated_servos_stay_stable_with_passive_damping():
+    """Saturated servos on light bodies: with the damping inside the clamp they turn explicitly
+    and blow up (the model's old form, checked so the test can fail); with passive damping no
+    hinge comes near a person's ~30 rad/s."""
+    assert _largest_hinge_speed(_on_floor(HumanoidConfig(passive_damping=False)), 1.0, 0.5, 0) > 100.0
+    assert _largest_hinge_speed(_on_floor(HumanoidConfig()), 1.0, 0.5, 0) < 40.0

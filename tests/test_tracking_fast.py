@@ -54,7 +54,7 @@ def state(rng) -> SimState:
     return SimState(qpos=rng.normal(size=(N, 76)), qvel=rng.normal(size=(N, 75)),
                     body_pos=rng.normal(0.0, 2.0, (N, B, 3)) + [3.0, -1.0, 0.9],
                     body_quat=_unit_quats(rng, (N, B)), body_lin_vel=rng.normal(0.0, 3.0, (N, B, 3)),
-                    body_ang_vel=rng.normal(0.0, 5.0, (N, B, 3)), actuator_force=rng.normal(0.0, 50.0, (N, 69)))
+                    body_ang_vel=rng.normal(0.0, 5.0, (N, B, 3)), servo_torque=rng.normal(0.0, 50.0, (N, 69)))
 
 
 @pytest.fixture
@@ -96,7 +96,8 @@ def test_sim_state_reads_the_bodies_and_moves_velocities_to_their_origins(rng):
     xpos, xquat = rng.normal(size=(N, nbody, 3)), _unit_quats(rng, (N, nbody))
     cvel, com = rng.normal(size=(N, nbody, 6)), rng.normal(size=(N, nbody, 3))
     qpos, qvel, force = rng.normal(size=(N, 76)), rng.normal(size=(N, 75)), rng.normal(size=(N, 69))
-    s = tracking.sim_state(qpos, qvel, xpos, xquat, cvel, com, force, body_ids)
+    damper = np.concatenate([np.zeros((N, 6)), rng.normal(size=(N, 69))], axis=1)
+    s = tracking.sim_state(qpos, qvel, xpos, xquat, cvel, com, force, damper, body_ids)
     for n in range(N):
         for b, body in enumerate(body_ids):
             omega, v = cvel[n, body, :3], cvel[n, body, 3:]
@@ -104,7 +105,8 @@ def test_sim_state_reads_the_bodies_and_moves_velocities_to_their_origins(rng):
             np.testing.assert_array_equal(s.body_ang_vel[n, b], omega)
             np.testing.assert_array_equal(s.body_pos[n, b], xpos[n, body])
             np.testing.assert_array_equal(s.body_quat[n, b], xquat[n, body])
-    assert s.qpos is qpos and s.qvel is qvel and s.actuator_force is force
+    assert s.qpos is qpos and s.qvel is qvel
+    np.testing.assert_array_equal(s.servo_torque, force + damper[:, 6:])
 
 
 def test_proprioception_matches_per_body_reference(state):
@@ -171,7 +173,7 @@ def test_reward_terms_and_errors_match_per_body_reference(state, ref, rng):
             # the rotation angle of (almost) equal unit quaternions comes through arccos near 1
             tol = dict(rtol=1e-6, atol=0) if n == 0 and term == "rot" else TOL
             np.testing.assert_allclose(got[term][n], weight * np.exp(-sharpness * error), **tol)
-        power = sum(abs(state.actuator_force[n, i] * state.qvel[n, 6 + i]) for i in range(69))
+        power = sum(abs(state.servo_torque[n, i] * state.qvel[n, 6 + i]) for i in range(69))
         np.testing.assert_allclose(got["energy"][n], -cfg.w_energy * power, **TOL)
         np.testing.assert_allclose(tracking.max_body_error(state, ref, frame)[n], max(dist), **TOL)
     assert tracking.max_body_error(state, ref, frame)[0] == 0.0
@@ -226,16 +228,18 @@ def test_pd_targets_feedforward_lead_is_clipped(ref, rng):
         TrackConfig(max_feedforward_lead=0.0)
 
 
-def test_damping_lead_cancels_a_servos_lag():
+@pytest.mark.parametrize("damping", ['kv="30"', 'damping="30"'])
+def test_damping_lead_cancels_a_servos_lag(damping):
     """A position servo following a target that moves at constant speed lags it by kd/kp times
-    the speed; the target led by damping_lead times the speed is followed without lag."""
+    the speed, whether it damps inside its force (kv) or passively (damping); the target led by
+    damping_lead times the speed is followed without lag."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_string("""
+    model = mujoco.MjModel.from_xml_string(f"""
     <mujoco><option timestep="0.001" integrator="implicitfast" gravity="0 0 0"/>
       <worldbody><body><joint name="j" axis="0 0 1" armature="0.05"/>
         <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/></body></worldbody>
-      <actuator><position joint="j" kp="200" kv="30"/></actuator></mujoco>""")
+      <actuator><position joint="j" kp="200" {damping}/></actuator></mujoco>""")
     lead = tracking.damping_lead(model)
     np.testing.assert_allclose(lead, [30 / 200])
     speed = 2.0

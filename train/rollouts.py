@@ -239,7 +239,7 @@ class Rollout:
         max_body_error: (T+1,) largest body distance from the reference (m).
         rewards: (T,) env rewards.
         reward_terms: name → (T,) weighted reward terms.
-        torques: (T, 69) actuator torques (N·m) at the end of each control step.
+        torques: (T, 69) servo torques (N·m; PD force and passive damping) at the end of each control step.
         success: the episode reached the clip's last frame.
         start_frame: the reference frame it started from.
         num_frames: frames in the clip.
@@ -323,7 +323,7 @@ def record_rollout(policy: Policy, clip: str | os.PathLike, start_frame: int = 0
             errors.append(info["max_body_error"])
             rewards.append(reward)
             terms.append(terms_from_info(info))
-            torques.append(env.data.actuator_force.copy())
+            torques.append(env.data.actuator_force + env.data.qfrc_damper[6:])
             if terminated or truncated:
                 success = bool(info["success"])
                 break

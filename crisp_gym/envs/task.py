@@ -129,6 +129,8 @@ class TrackingTask:
         rows = self.library.global_frames(clips, next_frames)
         return tracking.pd_targets(action, self.reference, rows, self.config, self.ranges, self.damping_lead)
 
-    def read_state(self, qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force) -> tracking.SimState:
-        return tracking.sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, self.body_ids)
+    def read_state(self, qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force,
+                   qfrc_damper) -> tracking.SimState:
+        return tracking.sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, qfrc_damper,
+                                  self.body_ids)
 

@@ -61,7 +61,7 @@ class CrispTrackEnv(gym.Env):
     The paper's six terms, each in ``info`` as ``reward_pos``, ``reward_rot``, ``reward_vel``,
     ``reward_ang_vel``, ``reward_height``, ``reward_energy``: position, rotation, linear
     and angular velocity, root height (``w·exp(-α·error)``) and an energy penalty
-    ``-w_energy·Σ|τ·q̇|``.
+    ``-w_energy·Σ|τ·q̇|`` (``τ``: each hinge servo's torque, its clamped PD force and its damping).
 
     ## Episode end
     ``terminated`` when any body is more than ``termination_distance`` (0.5 m) from its
@@ -101,7 +101,7 @@ class CrispTrackEnv(gym.Env):
     def _state(self):
         d = self.data
         return self.task.read_state(d.qpos[None], d.qvel[None], d.xpos[None], d.xquat[None], d.cvel[None],
-                                    d.subtree_com[None], d.actuator_force[None])
+                                    d.subtree_com[None], d.actuator_force[None], d.qfrc_damper[None])
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)

@@ -32,7 +32,7 @@ from crisp_gym.envs.track import make_config
 from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
 from crisp_gym.render import EnvDisplay
 
-_BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force")
+_BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force", "qfrc_damper")
 
 
 class CrispTrackVectorEnv(VectorEnv):
@@ -99,7 +99,7 @@ class CrispTrackVectorEnv(VectorEnv):
     def _state(self, ids: np.ndarray | slice = slice(None)):
         f = {name: self._fields[name][ids] for name in _BOUND_FIELDS if name != "ctrl"}
         return self.task.read_state(f["qpos"], f["qvel"], f["xpos"], f["xquat"], f["cvel"], f["subtree_com"],
-                                    f["actuator_force"])
+                                    f["actuator_force"], f["qfrc_damper"])
 
     def _reset_sims(self, ids: np.ndarray, clips: np.ndarray, frames: np.ndarray) -> None:
         qpos, qvel, ctrl = self.task.reset_state(clips, frames)

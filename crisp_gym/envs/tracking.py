@@ -141,11 +141,14 @@ class SimState:
     body_quat: np.ndarray
     body_lin_vel: np.ndarray
     body_ang_vel: np.ndarray
-    actuator_force: np.ndarray
+    servo_torque: np.ndarray
 
 
-def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, body_ids) -> SimState:
+def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, qfrc_damper, body_ids) -> SimState:
     """Assemble a :class:`SimState` from MuJoCo fields (each with a leading N).
+
+    ``servo_torque`` (N, 69) is each hinge servo's whole torque: its clamped PD force plus its
+    passive damping (``qfrc_damper``; only the hinges are damped, in actuator order).
 
     ``cvel`` is the spatial velocity (angular, linear) at the root's subtree centre of mass,
     so a body origin moves with ``v + ω × (x_body − c)``.
@@ -158,7 +161,7 @@ def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, body_i
     lin = quat.cross(ang, pos - np.take(subtree_com, np.repeat(body_ids[:1], len(body_ids)), axis=1))
     lin += vel[..., 3:]
     return SimState(qpos=qpos, qvel=qvel, body_pos=pos, body_quat=np.take(xquat, body_ids, axis=1),
-                    body_lin_vel=lin, body_ang_vel=ang, actuator_force=actuator_force)
+                    body_lin_vel=lin, body_ang_vel=ang, servo_torque=actuator_force + qfrc_damper[:, 6:])
 
 
 def _heading_inverse(root_quat: np.ndarray) -> np.ndarray:
@@ -259,7 +262,7 @@ def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackC
     err *= [[-cfg.a_pos], [-cfg.a_vel], [-cfg.a_ang_vel], [-cfg.a_rot], [-cfg.a_height]]
     terms = np.exp(err, out=err)
     terms *= [[cfg.w_pos], [cfg.w_vel], [cfg.w_ang_vel], [cfg.w_rot], [cfg.w_height]]
-    power = np.minimum(np.abs(state.actuator_force * state.qvel[:, 6:]).sum(-1), cfg.max_power)
+    power = np.minimum(np.abs(state.servo_torque * state.qvel[:, 6:]).sum(-1), cfg.max_power)
     return {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
             "energy": -cfg.w_energy * power}
 
@@ -279,9 +282,10 @@ def hinge_ranges() -> np.ndarray:
 
 
 def damping_lead(model: mujoco.MjModel) -> np.ndarray:
-    """(nu,) ``kd / kp`` of each position actuator (s): how far its servo lags a target moving at
-    constant speed, since MuJoCo's position actuator damps the joint's velocity, not its error."""
-    return -model.actuator_biasprm[:, 2] / model.actuator_gainprm[:, 0]
+    """(nu,) ``kd / kp`` of each position actuator (s; ``kd`` inside the servo or as its passive
+    damping): how far its servo lags a target moving at constant speed, since the servo damps
+    the joint's velocity, not its error."""
+    return (model.actuator_damping - model.actuator_biasprm[:, 2]) / model.actuator_gainprm[:, 0]
 
 
 def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: TrackConfig,

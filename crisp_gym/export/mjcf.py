@@ -42,7 +42,8 @@ _CHECKED_FIELDS = (
     "body_pos", "body_quat", "body_ipos", "body_iquat", "body_mass", "body_inertia",
     "geom_type", "geom_pos", "geom_quat", "geom_size", "geom_friction", "geom_contype", "geom_conaffinity",
     "jnt_type", "jnt_pos", "jnt_axis", "jnt_range", "dof_armature", "dof_damping", "dof_frictionloss",
-    "actuator_gainprm", "actuator_biasprm", "actuator_forcerange", "actuator_ctrlrange", "actuator_gear",
+    "actuator_gainprm", "actuator_biasprm", "actuator_damping", "actuator_forcerange", "actuator_ctrlrange",
+    "actuator_gear",
     "key_qpos", "key_qvel", "key_ctrl", "key_time",
 )  # fmt: skip
 
@@ -144,6 +145,7 @@ def _exact_rest(root: ET.Element, model: mujoco.MjModel) -> None:
         _check_name(elem, model.actuator(a).name, "actuator")
         for attr, value in (("gainprm", model.actuator_gainprm[a]), ("biasprm", model.actuator_biasprm[a]),
                             ("dynprm", model.actuator_dynprm[a]), ("gear", model.actuator_gear[a]),
+                            ("damping", model.actuator_damping[a]),
                             ("forcerange", model.actuator_forcerange[a]),
                             ("ctrlrange", model.actuator_ctrlrange[a])):
             _set(elem, attr, value)

@@ -149,8 +149,9 @@ def build_humanoid_bench_spec(penetration: float = 0.005) -> mujoco.MjSpec:
     A fixed pelvis keeps the contact cases (ground friction, softness, height, a missing
     box) while making every replay window well posed without the root state. The model
     carries the parked placeholder of the ``support_box`` effect (:func:`add_support_slot`).
+    Its servos damp inside their torque clamp, as a robot's drives do.
     """
-    spec = build_humanoid_spec(HumanoidConfig(arena_memory=2 * 1024 * 1024))
+    spec = build_humanoid_spec(HumanoidConfig(arena_memory=2 * 1024 * 1024, passive_damping=False))
     spec.delete(spec.joint(ROOT_JOINT))
     model = spec.compile()
     data = mujoco.MjData(model)
