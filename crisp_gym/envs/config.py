@@ -25,8 +25,8 @@ class TrackConfig:
             exceed. The shipped policies were trained without it.
         max_feedforward_lead: the lead is clipped to ±this (rad). Captured motion's light
             bodies turn at up to ~1,500 °/s for a frame or two (CMU 131_01's right ankle and upper
-            arm); an unclipped lead of 2+ rad flips the foot, while most of the lag is removed
-            within ±0.3 rad (``docs/training.md``).
+            arm); on the servos that damped inside their clamp an unclipped lead of 2+ rad flipped
+            the foot, while most of the lag is removed within ±0.3 rad (``docs/training.md``).
         num_future_frames: K, the reference frames in the ``targets`` observation.
         scene_aware: add the ``points`` observation (surface points of nearby primitives).
         num_points: N, points in the ``points`` observation.
