@@ -344,6 +344,12 @@ def add_position_servo(spec: mujoco.MjSpec, joint: str, kp: float, kv: float, to
     return act
 
 
+def servo_damping(model: mujoco.MjModel) -> np.ndarray:
+    """(nu,) damping ``kd`` of each position servo of ``model``, whether it damps inside its
+    clamped force (``kv``) or passively (see :func:`add_position_servo`)."""
+    return model.actuator_damping - model.actuator_biasprm[:, 2]
+
+
 def build_humanoid(config: HumanoidConfig | None = None) -> mujoco.MjModel:
     """Compile :func:`build_humanoid_spec`."""
     return build_humanoid_spec(config).compile()

@@ -78,10 +78,14 @@ def test_user_rest_joints_are_used():
         default_rest_joints(7.0)
 
 
-def test_pd_holds_the_rest_pose_on_a_floor():
-    spec = build_humanoid_spec()
+def _on_floor(config: HumanoidConfig) -> mujoco.MjModel:
+    spec = build_humanoid_spec(config)
     spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=(5, 5, 0.1), contype=1, conaffinity=2)
-    model = spec.compile()
+    return spec.compile()
+
+
+def test_pd_holds_the_rest_pose_on_a_floor():
+    model = _on_floor(HumanoidConfig())
     data = mujoco.MjData(model)
     data.qpos[2] += 0.002
     for _ in range(240):  # 2 s
@@ -121,12 +125,6 @@ def _largest_hinge_speed(model: mujoco.MjModel, seconds: float, sigma: float, se
         speed = np.abs(data.qvel[6:]).max()
         fastest = max(fastest, speed if np.isfinite(speed) else np.inf)
     return fastest
-
-
-def _on_floor(config: HumanoidConfig) -> mujoco.MjModel:
-    spec = build_humanoid_spec(config)
-    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=(5, 5, 0.1), contype=1, conaffinity=2)
-    return spec.compile()
 
 
 def test_saturated_servos_stay_stable_with_passive_damping():

@@ -16,7 +16,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from crisp_gym.envs.tracking import terms_from_info
+from crisp_gym.envs.tracking import servo_torque, terms_from_info
 from crisp_gym.policy.networks import ACTION_DIM
 from crisp_gym.train.tracking_metrics import accel_error, jitter, segment_mpjpe
 
@@ -323,7 +323,7 @@ def record_rollout(policy: Policy, clip: str | os.PathLike, start_frame: int = 0
             errors.append(info["max_body_error"])
             rewards.append(reward)
             terms.append(terms_from_info(info))
-            torques.append(env.data.actuator_force + env.data.qfrc_damper[6:])
+            torques.append(servo_torque(env.data.actuator_force, env.data.qfrc_damper))
             if terminated or truncated:
                 success = bool(info["success"])
                 break

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from crisp_gym.envs import quat
 from crisp_gym.envs.config import TrackConfig
-from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg
+from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg, servo_damping
 from crisp_gym.mjcf_scene import attach_scene, surface_points
 from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.render import style_scene
@@ -147,8 +147,7 @@ class SimState:
 def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, qfrc_damper, body_ids) -> SimState:
     """Assemble a :class:`SimState` from MuJoCo fields (each with a leading N).
 
-    ``servo_torque`` (N, 69) is each hinge servo's whole torque: its clamped PD force plus its
-    passive damping (``qfrc_damper``; only the hinges are damped, in actuator order).
+    ``servo_torque`` (N, 69): see :func:`servo_torque`.
 
     ``cvel`` is the spatial velocity (angular, linear) at the root's subtree centre of mass,
     so a body origin moves with ``v + ω × (x_body − c)``.
@@ -161,7 +160,14 @@ def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, qfrc_d
     lin = quat.cross(ang, pos - np.take(subtree_com, np.repeat(body_ids[:1], len(body_ids)), axis=1))
     lin += vel[..., 3:]
     return SimState(qpos=qpos, qvel=qvel, body_pos=pos, body_quat=np.take(xquat, body_ids, axis=1),
-                    body_lin_vel=lin, body_ang_vel=ang, servo_torque=actuator_force + qfrc_damper[:, 6:])
+                    body_lin_vel=lin, body_ang_vel=ang, servo_torque=servo_torque(actuator_force, qfrc_damper))
+
+
+def servo_torque(actuator_force: np.ndarray, qfrc_damper: np.ndarray) -> np.ndarray:
+    """(..., 69) each hinge servo's whole torque: its clamped PD force (``actuator_force``) plus its
+    passive damping (``qfrc_damper`` past the free root's six dofs; only the hinges are damped,
+    in actuator order)."""
+    return actuator_force + qfrc_damper[..., 6:]
 
 
 def _heading_inverse(root_quat: np.ndarray) -> np.ndarray:
@@ -285,7 +291,7 @@ def damping_lead(model: mujoco.MjModel) -> np.ndarray:
     """(nu,) ``kd / kp`` of each position actuator (s; ``kd`` inside the servo or as its passive
     damping): how far its servo lags a target moving at constant speed, since the servo damps
     the joint's velocity, not its error."""
-    return (model.actuator_damping - model.actuator_biasprm[:, 2]) / model.actuator_gainprm[:, 0]
+    return servo_damping(model) / model.actuator_gainprm[:, 0]
 
 
 def pd_targets(action: np.ndarray, ref: Reference, next_frame: np.ndarray, cfg: TrackConfig,

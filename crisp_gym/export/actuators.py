@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mujoco
 
-from crisp_gym.humanoid import HumanoidConfig, build_humanoid
+from crisp_gym.humanoid import HumanoidConfig, build_humanoid, servo_damping
 
 
 def joint_servos(model: mujoco.MjModel) -> dict[int, int]:
@@ -24,12 +24,13 @@ def actuator_table(model: mujoco.MjModel | None = None) -> dict:
     model = model if model is not None else build_humanoid(HumanoidConfig())
     servos = sorted(joint_servos(model).items())
     passive = any(model.actuator_damping[a] > 0 for _, a in servos)
+    kd = servo_damping(model)
     joints = {}
     for j, a in servos:
         dof = model.jnt_dofadr[j]
         joints[model.joint(j).name] = {
             "kp": float(model.actuator_gainprm[a, 0]),
-            "kd": float(model.actuator_damping[a] - model.actuator_biasprm[a, 2]),
+            "kd": float(kd[a]),
             "effort_limit": float(model.actuator_forcerange[a, 1]) if model.actuator_forcelimited[a] else None,
             "armature": float(model.dof_armature[dof]),
             "lower": float(model.jnt_range[j, 0]), "upper": float(model.jnt_range[j, 1]),
