@@ -11,6 +11,7 @@ import argparse
 import json
 
 from crisp_gym.sim2real.bench import BenchConfig, run_bench
+from crisp_gym.sim2real.diagnose import DiagnoseConfig
 
 
 def main() -> None:
@@ -23,12 +24,14 @@ def main() -> None:
     ap.add_argument("--p-none", type=float, default=0.12)
     ap.add_argument("--p-outside", type=float, default=0.12)
     ap.add_argument("--p-compound", type=float, default=0.15, help="share of two-effect cases (multi-joint models)")
+    ap.add_argument("--solver", choices=["mujoco", "batched"], default="mujoco",
+                    help="the fits' Levenberg-Marquardt (DiagnoseConfig.solver)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()
     cfg = BenchConfig(cases=args.cases, seed=args.seed, noise_scales=tuple(args.noise), models=tuple(args.models),
                       families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside,
                       p_compound=args.p_compound)
-    s = run_bench(cfg, args.out)
+    s = run_bench(cfg, args.out, DiagnoseConfig(show_progress=False, solver=args.solver))
     print("| metric | value |\n|---|---|")
     for k, v in s.items():
         if not isinstance(v, dict):

@@ -1,15 +1,17 @@
-"""The diagnosis's own Levenberg-Marquardt against ``mujoco.minimize.least_squares``, on the same fits.
+"""The fit's two Levenberg-Marquardt solvers on the same fits: MuJoCo's and the batched one.
 
-    python benchmarks/gap_lm.py --cases 12
+    python benchmarks/gap_lm.py --cases 20 --models servo go2 arm rail_leg humanoid
 
-Cases are drawn as the blind benchmark draws them (``crisp_gym.sim2real.bench``: an in-library
-effect with random parameters on the servo model, a log synthesised with it). Each case's true
-effect is fitted to that log twice, from the same best start (the effect's own start points,
-scored by one batched rollout): by :class:`crisp_gym.sim2real.fit.Fitter`, the project's
-Levenberg-Marquardt (one batched rollout per Jacobian and per set of trial steps), and by MuJoCo's
-``least_squares`` with the same bounds and a vectorised residual (its finite-difference Jacobian
-is one batched rollout too). Reported per case: the training gap each reaches (rad RMS),
-rollouts (windows simulated) and seconds; and the medians.
+Cases are drawn as the blind benchmark draws them (``crisp_gym.sim2real.bench``: in-library
+effects with random parameters, a second effect on another joint in some multi-joint cases, a
+log synthesised with them). Each case's true effect (or pair) is fitted to its log by
+:class:`crisp_gym.sim2real.fit.Fitter` twice, the whole fit (the effect's multi-start grid,
+refinement, restarts) with each solver: ``"mujoco"`` (``mujoco.minimize.least_squares`` with the
+fitter's Jacobian) and ``"batched"`` (three damping values per iteration in one batched
+rollout). On multi-joint models the first effect's per-joint variant (one parameter per joint,
+a diagonal Jacobian from one rollout) is fitted too, where the library has one. Reported per
+fit: the training gap each reaches (rad RMS), rollouts (windows simulated) and seconds; then
+per model and overall, the medians and how often each solver's gap is within 1 % of the other's.
 """
 
 from __future__ import annotations
@@ -19,73 +21,73 @@ from dataclasses import dataclass
 
 import numpy as np
 import tyro
-from mujoco import minimize
 
 from crisp_gym.sim2real.bench import BenchConfig, _effect_of, _template, commands, draw_truth, scenario, synthesize
-from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
+from crisp_gym.sim2real.fit import Combo, Fitter
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
 
 
 @dataclass(frozen=True)
 class Args:
     cases: int = 12
-    """Cases drawn (servo model, in-library effects)."""
+    """Cases drawn, round-robin over the models (in-library effects only)."""
+    models: tuple[str, ...] = ("servo",)
+    """Bench models: servo, go2, humanoid, arm, rail_leg."""
     max_iter: int = 15
-    """Iterations for both optimisers (the diagnosis's default)."""
+    """Iterations for both solvers (the diagnosis's default)."""
     seed: int = 0
 
 
-def _mujoco_fit(rep: Replayer, combo: Combo, x0: np.ndarray, max_iter: int) -> tuple[np.ndarray, int]:
-    """``least_squares`` from ``x0`` within the parameters' bounds; the fit and its rollouts."""
-    params = combo.params
-    lo, hi = np.array([p.lo for p in params]), np.array([p.hi for p in params])
-    count = [0]
-
-    def residual(x: np.ndarray) -> np.ndarray:  # x: (n, k) columns, evaluated in one batch
-        count[0] += x.shape[1] * len(rep.windows)
-        r = residuals(rep, [combo.inputs(x[:, j], rep.trajs) for j in range(x.shape[1])])
-        return r.reshape(r.shape[0], -1).T
-
-    x, _ = minimize.least_squares(x0, residual, bounds=[lo, hi], max_iter=max_iter, verbose=0,
-                                  x_scale=np.array([p.step for p in params]) * 100)
-    return x, count[0]
+def _fits(truth: dict, tr) -> list[tuple[str, Combo]]:
+    """The truth's own effects and, on a multi-joint log, its first effect per joint."""
+    parts = truth.get("parts", [truth])
+    fits = [("truth", Combo(tuple(_effect_of(p) for p in parts), tr))]
+    kind = type(_effect_of(parts[0]))
+    if len(tr.log.joint_names) > 1 and kind.per_joint_allowed:
+        fits.append(("per-joint", Combo((kind(per_joint=True),), tr)))
+    return fits
 
 
 def main(args: Args) -> list[dict]:
-    rng = np.random.default_rng(args.seed)
-    cfg = BenchConfig(models=("servo",), p_none=0.0, p_outside=0.0)
-    sc = scenario("servo", cfg)
+    cfg = BenchConfig(models=args.models, p_none=0.0, p_outside=0.0)
+    scenarios = {m: scenario(m, cfg) for m in args.models}
     rows = []
+    print("| case | model | effect | fit | params | gap mujoco | gap batched | rollouts mujoco | rollouts batched "
+          "| s mujoco | s batched |\n|---|---|---|---|---|---|---|---|---|---|---|")
     for case in range(args.cases):
+        sc = scenarios[args.models[case % len(args.models)]]
+        rng = np.random.default_rng(args.seed + case)
         t, u = commands(sc, rng)
         truth = draw_truth(sc, _template(sc, t, u), rng, cfg)
         log = synthesize(sc, truth, t, u, 1.0, rng)
         tr = bind(log, sc.model)
         rep = Replayer([tr], make_windows([tr], 0.5))
-        combo = Combo((_effect_of(truth),), tr)
-        fitter = Fitter(rep, args.max_iter)
-        tic = time.perf_counter()
-        ours = fitter.fit(combo)
-        ours_s = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        params = combo.params
-        starts = [np.clip(s, [p.lo for p in params], [p.hi for p in params]) for s in combo.starts()]
-        r = residuals(rep, [combo.inputs(s, rep.trajs) for s in starts])
-        x0 = starts[int(np.argmin([gap_rms(ri, rep.mask) for ri in r]))]
-        x, theirs_rollouts = _mujoco_fit(rep, combo, x0, args.max_iter)
-        theirs_rollouts += len(starts) * len(rep.windows)  # scoring the starts, as Fitter.fit counts it
-        theirs_s = time.perf_counter() - tic
-        theirs_gap = gap_rms(residuals(rep, [combo.inputs(x, rep.trajs)])[0], rep.mask)
-        rows.append({"case": case, "effect": truth["effect"], "ours_gap": ours.train_gap, "mujoco_gap": theirs_gap,
-                     "ours_rollouts": ours.rollouts, "mujoco_rollouts": theirs_rollouts, "ours_s": ours_s,
-                     "mujoco_s": theirs_s})
-        print(f"| {case} | {truth['effect']} | {ours.train_gap:.3g} | {theirs_gap:.3g} | {ours.rollouts} | "
-              f"{theirs_rollouts} | {ours_s:.2f} | {theirs_s:.2f} |", flush=True)
-    ratio = np.median([r["mujoco_gap"] / r["ours_gap"] for r in rows])
-    median = {key: np.median([r[key] for r in rows]) for key in rows[0] if key.endswith(("rollouts", "_s"))}
-    print(f"\nmedian gap ratio mujoco/ours {ratio:.3f}; median rollouts {median['ours_rollouts']:.0f} / "
-          f"{median['mujoco_rollouts']:.0f}; median seconds {median['ours_s']:.2f} / {median['mujoco_s']:.2f}")
+        label = "+".join(p["effect"] + (f"@{p['joint']}" if p.get("joint") else "") for p in truth.get("parts", [truth]))
+        for kind, combo in _fits(truth, tr):
+            row = {"case": case, "model": sc.name, "effect": label, "fit": kind, "params": len(combo.params)}
+            for solver in ("mujoco", "batched"):
+                fitter = Fitter(rep, args.max_iter, solver=solver)
+                tic = time.perf_counter()
+                result = fitter.fit(combo)
+                row |= {f"gap_{solver}": result.train_gap, f"rollouts_{solver}": result.rollouts,
+                        f"s_{solver}": time.perf_counter() - tic}
+            rows.append(row)
+            print(f"| {case} | {sc.name} | {label} | {kind} | {row['params']} | {row['gap_mujoco']:.4g} | "
+                  f"{row['gap_batched']:.4g} | {row['rollouts_mujoco']} | {row['rollouts_batched']} | "
+                  f"{row['s_mujoco']:.2f} | {row['s_batched']:.2f} |", flush=True)
+    print("\n| models | fits | mujoco gap within 1 % of batched (or lower) | batched within 1 % of mujoco (or lower) "
+          "| median gap ratio mujoco / batched | median rollouts mujoco / batched | median s mujoco / batched |\n"
+          "|---|---|---|---|---|---|---|")
+    for name in (*args.models, "all"):
+        sel = [r for r in rows if name in ("all", r["model"])]
+        if not sel:
+            continue
+        ratio = np.array([r["gap_mujoco"] / r["gap_batched"] for r in sel])
+        med = {k: np.median([r[k] for r in sel]) for k in ("rollouts_mujoco", "rollouts_batched", "s_mujoco",
+                                                              "s_batched")}
+        print(f"| {name} | {len(sel)} | {np.sum(ratio <= 1.01)} | {np.sum(1 / ratio <= 1.01)} | {np.median(ratio):.3f} | "
+              f"{med['rollouts_mujoco']:.0f} / {med['rollouts_batched']:.0f} | "
+              f"{med['s_mujoco']:.2f} / {med['s_batched']:.2f} |")
     return rows
 
 

@@ -23,7 +23,7 @@ from scipy import stats
 from tqdm import tqdm
 
 from crisp_gym.sim2real.effects import CannotApply, Effect, Param, check_families, library
-from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals
+from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, Solver, gap_rms, residuals
 from crisp_gym.sim2real.gap import residual_structure, where
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, nominal_inputs
@@ -52,6 +52,9 @@ class DiagnoseConfig:
         none_factor: a held-out gap below none_factor x the noise floor means "none".
         explained_factor: the winner explains the gap if it leaves at most this x the floor.
         max_iter: Levenberg-Marquardt iterations per fit.
+        solver: the fits' Levenberg-Marquardt (:data:`~crisp_gym.sim2real.fit.Solver`):
+            ``"mujoco"`` (``mujoco.minimize.least_squares``, 40 % fewer rollouts over the
+            bench's models, ``benchmarks/gap_lm.py``) or ``"batched"`` (the project's own).
         nthread: rollout threads.
         seed: seed of the noise-floor synthesis.
         families: restrict the library to these effect families (empty: all).
@@ -77,6 +80,7 @@ class DiagnoseConfig:
     none_factor: float = 1.5
     explained_factor: float = 1.6
     max_iter: int = 15
+    solver: Solver = "mujoco"
     nthread: int = 2
     seed: int = 0
     families: tuple[str, ...] = ()
@@ -152,7 +156,7 @@ def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, dr
 
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
-                       max_iter: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                       max_iter: int = 3, solver: Solver = "mujoco") -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
     training logs it resynthesises itself (:func:`resynthesize`). The refits' mean offset
     is a bias of replay fits (noisy initial states and velocities), which the sandwich
@@ -165,7 +169,7 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
     for b in range(draws):
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
-        fitter = Fitter(Replayer(trajs, rep.windows, len(rep._datas)), max_iter)
+        fitter = Fitter(Replayer(trajs, rep.windows, len(rep._datas)), max_iter, solver=solver)
         refits.append(fitter.fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
@@ -254,7 +258,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     train_rms = np.sqrt(np.sum(r0_train**2, axis=(0, 1)) / rep_train.mask.sum())
     focus = names[int(np.argmax(train_rms**2 - floor_j**2))]
 
-    fitter = Fitter(rep_train, cfg.max_iter)
+    fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver)
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
     skipped: list[dict[str, str]] = []
@@ -293,7 +297,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
     lo, hi = chosen.x - half, chosen.x + half
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
-        lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96)
+        lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
     r_after = residuals(rep_test, [chosen.combo.inputs(chosen.x, tr_test)])[0]
     per_joint_after = np.sqrt(np.sum(r_after**2, axis=(0, 1)) / rep_test.mask.sum())
@@ -413,7 +417,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
         if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
             bases.append(c)
     names = ref.log.joint_names
-    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0)
+    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver)
     pairs: list[tuple[Candidate, Effect]] = []
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()

@@ -1,21 +1,25 @@
 """Fit the parameters of an effect (or a combination) to replay windows.
 
-Least squares on the windowed position residual by Levenberg-Marquardt, written here
-rather than taken from scipy so that every Jacobian (one perturbed model per parameter)
-and every trial step (several damping values) is one batched rollout. Parameters that
-act on one joint each get a diagonal Jacobian from a single perturbed rollout. Non-convex
-effects (delays, saturation, backlash) start from several points, all evaluated at once.
-Confidence intervals come from a sandwich covariance clustered by window, because the
-residuals inside a window are strongly correlated.
+Least squares on the windowed position residual by Levenberg-Marquardt, so that every
+Jacobian (one perturbed model per parameter) is one batched rollout. Parameters that act on
+one joint each get a diagonal Jacobian from a single perturbed rollout. Two solvers share
+that Jacobian: MuJoCo's ``mujoco.minimize.least_squares`` (one trial step per rollout, its
+regulariser adapted from the predicted reduction) and the project's own (three damping
+values tried in one batched rollout per iteration); ``benchmarks/gap_lm.py`` compares them.
+Non-convex effects (delays, saturation, backlash) start from several points, all evaluated
+at once. Confidence intervals come from a sandwich covariance clustered by window, because
+the residuals inside a window are strongly correlated.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import mujoco
 import numpy as np
+from mujoco import minimize
 
 from crisp_gym.sim2real.effects import Effect, Param, Signals
 from crisp_gym.sim2real.replay import Replayer, SimInputs, Trajectory
@@ -157,13 +161,27 @@ class FitResult:
     rollouts: int
 
 
+class _Converged(Exception):
+    """Raised from ``least_squares``'s iteration callback to stop it once its gain is negligible."""
+
+
+Solver = Literal["mujoco", "batched"]
+"""Levenberg-Marquardt of :class:`Fitter`: ``"mujoco"`` (``mujoco.minimize.least_squares``) or
+``"batched"`` (three damping values per iteration in one batched rollout)."""
+
+
 class Fitter:
     """Levenberg-Marquardt over batched replays of a fixed set of windows."""
 
-    def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2) -> None:
+    def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2,
+                 solver: Solver = "mujoco") -> None:
+        """``restarts``: fresh-damping restarts of the batched solver after it stops."""
+        if solver not in ("mujoco", "batched"):
+            raise ValueError(f"unknown solver {solver!r}; expected 'mujoco' or 'batched'")
         self.rep = replayer
         self.max_iter = max_iter
         self.restarts = restarts
+        self.solver = solver
         self.rollouts = 0
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
@@ -194,7 +212,9 @@ class Fitter:
         best = None
         for k in np.argsort(costs)[:max(e.refine for e in combo.effects) if combo.effects else 1]:
             x, r, cost = self._descend(combo, starts[k], r_all[k], costs[k], lo, hi, step)
-            for _ in range(self.restarts):  # a fresh damping: LM stalls early on rugged (contact) costs
+            # the batched solver's fresh damping: it stalls early on rugged (contact) costs; MuJoCo's
+            # lowers its regulariser exponentially after each success, and a restart measured no better
+            for _ in range(self.restarts if self.solver == "batched" else 0):
                 x2, r2, c2 = self._descend(combo, x, r, cost, lo, hi, step, patience=1)
                 if c2 >= cost * (1 - 1e-3):
                     break
@@ -204,24 +224,36 @@ class Fitter:
         x, r, _ = best
         return FitResult(x=x, train_gap=gap_rms(r, self.rep.mask), rollouts=self.rollouts - before)
 
+    def _jacobian(self, combo: Combo, x: np.ndarray, r: np.ndarray, cols: np.ndarray | None,
+                  step: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Forward differences of the residual ``r`` at ``x``, by steps of ``step`` (backward at
+        the upper bound): (nwin, size-1, P) on the parameters' own columns ``cols`` when each
+        acts on one joint (one perturbed rollout), else (P, nwin, size-1, n)."""
+        h = np.where(x + step <= hi, step, -step)
+        if cols is not None:
+            rp = self._res(combo, [x + h])[0]
+            return (rp[..., cols] - r[..., cols]) / h
+        rp = self._res(combo, [x + h[i] * np.eye(len(x))[i] for i in range(len(x))])
+        return (rp - r[None]) / h[:, None, None, None]
+
     def _descend(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray, hi: np.ndarray,
                  step: np.ndarray, patience: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
-        """Levenberg-Marquardt from ``x`` (with residual ``r`` and ``cost`` there); stops
-        after ``max_iter`` iterations, a negligible gain, or ``patience`` failed steps in a row."""
+        """Levenberg-Marquardt from ``x`` (with residual ``r`` and ``cost`` there) by the
+        fitter's solver; the batched one stops after ``max_iter`` iterations, a negligible
+        gain, or ``patience`` failed steps in a row."""
+        if self.solver == "mujoco":
+            return self._least_squares(combo, x, r, cost, lo, hi, step)
         cols = self._columns(combo)
         mu = 1e-2
         failures = 0
         for _ in range(self.max_iter):
-            h = np.where(x + step <= hi, step, -step)
             if cols is not None:
-                rp = self._res(combo, [x + h])[0]
-                d = (rp[..., cols] - r[..., cols]) / h  # (nwin, size-1, P)
+                d = self._jacobian(combo, x, r, cols, step, hi)  # (nwin, size-1, P)
                 g = np.einsum("wtp,wtp->p", d, r[..., cols])
                 hess = np.einsum("wtp,wtp->p", d, d)
                 steps = [-g / (hess * (1 + m) + 1e-300) for m in (mu / 10, mu, mu * 10)]
             else:
-                rp = self._res(combo, [x + h[i] * np.eye(len(x))[i] for i in range(len(x))])
-                jac = ((rp - r[None]) / h[:, None, None, None]).reshape(len(x), -1)
+                jac = self._jacobian(combo, x, r, cols, step, hi).reshape(len(x), -1)
                 hess = jac @ jac.T
                 g = jac @ r.reshape(-1)
                 diag = np.diag(np.diag(hess)) + 1e-12 * np.trace(hess) * np.eye(len(x)) + 1e-300 * np.eye(len(x))
@@ -243,6 +275,47 @@ class Fitter:
                 if failures >= patience:
                     break
         return x, r, cost
+
+    def _least_squares(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray,
+                       hi: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``mujoco.minimize.least_squares`` from ``x`` with the fitter's Jacobian, its columns
+        scaled to unit norm (Marquardt's scaling, as the batched solver's), stopped as the
+        batched solver stops: after ``max_iter`` iterations or a negligible gain. Returns the
+        best point it evaluated, with its residual and cost."""
+        cols = self._columns(combo)
+        best = [x, r, cost]
+
+        def residual(xs: np.ndarray) -> np.ndarray:  # (P, k) points, one batched rollout
+            if xs.shape[1] == 1 and np.array_equal(xs[:, 0], x):
+                return r.reshape(-1, 1)  # the start, already simulated
+            rs = self._res(combo, list(xs.T))
+            costs = self._cost(rs)
+            k = int(np.argmin(costs))
+            if costs[k] < best[2]:
+                best[:] = [xs[:, k].copy(), rs[k], costs[k]]
+            return rs.reshape(len(rs), -1).T
+
+        def jacobian(xc: np.ndarray, rc: np.ndarray) -> np.ndarray:  # (m, P)
+            d = self._jacobian(combo, xc[:, 0], rc[:, 0].reshape(r.shape), cols, step, hi)
+            if cols is None:
+                return d.reshape(len(xc), -1).T
+            full = np.zeros(r.shape + (len(cols),))
+            full[..., cols, np.arange(len(cols))] = d
+            return full.reshape(-1, len(cols))
+
+        def stop_when_flat(trace: list[minimize.IterLog]) -> None:
+            if trace[-1].reduction < 1e-4 * trace[-1].objective:
+                raise _Converged
+
+        try:
+            # mu_factor 10: from the default 1.26, a failed step near the optimum climbed the
+            # regulariser over a dozen extra rollouts; gtol relative to the start's residual
+            minimize.least_squares(x, residual, bounds=[lo, hi], jacobian=jacobian, max_iter=self.max_iter,
+                                   x_scale="jac", mu_factor=10.0, gtol=1e-3 * np.sqrt(cost), verbose=0,
+                                   iter_callback=stop_when_flat)
+        except _Converged:
+            pass
+        return best[0], best[1], best[2]
 
     def confidence(self, combo: Combo, x: np.ndarray, z: float = 1.96) -> np.ndarray:
         """Half-widths of the ``z``-sigma confidence intervals of ``x`` (sandwich
