@@ -384,6 +384,8 @@ def part_signatures(sc: Scenario, truth: dict, log: RealLog, window_s: float) ->
     at its true value (empty for a single effect). A gear play among the others is replayed
     by the library's approximation of it, which can only make the part look larger."""
     parts = truth.get("parts", [])
+    if not parts:
+        return []
     tr = bind(log, sc.model, validate=False)
     rep = Replayer([tr], make_windows([tr], window_s), 2)
     sizes = []
@@ -467,7 +469,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, dcfg: DiagnoseConfig | None
         test = synthesize(sc, truth, t, u_test, noise, rng)
         exact = synthesize(sc, truth, t, u_test, 0.0, rng)
         size = signature(sc, exact, dcfg.window_s)
-        sizes = part_signatures(sc, truth, exact, dcfg.window_s) if truth.get("parts") else []
+        sizes = part_signatures(sc, truth, exact, dcfg.window_s)
         write_text(out / "truth" / f"case{i:03d}.json", json.dumps(
             {**truth, "model": sc.name, "noise": noise, "signature": size, "part_signatures": sizes}))
         result = diagnose([(train, sc.model)], [(test, sc.model)], dcfg)  # the truth stays on disk
