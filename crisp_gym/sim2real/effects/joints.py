@@ -104,12 +104,14 @@ class TorqueSaturation(Effect):
         return ref
 
     def params(self, tr: Trajectory) -> list[Param]:
-        return self.expand([Param("fraction", 1.0, 0.02, 1.0, 0.005, "of limit")], tr)
+        # down to 0.2 %: a joint loaded far below its model's limit (a humanoid's knee abduction)
+        # saturates at a percent of it, which a bound at 2 % left to a PD gain to imitate
+        return self.expand([Param("fraction", 1.0, 0.002, 1.0, 0.001, "of limit")], tr)
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
         # Geometric: a robot far from its torque limits saturates at a small fraction of them.
         n = len(self.params(tr))
-        return [np.full(n, f) for f in (0.03, 0.08, 0.2, 0.45, 0.8)]
+        return [np.full(n, f) for f in (0.006, 0.015, 0.03, 0.08, 0.2, 0.45, 0.8)]
 
     def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
         cols = self.columns(tr)
