@@ -148,6 +148,18 @@ def test_report_files(tmp_path):
     assert (out / "overlay.png").is_file() and (out / "ranking.png").is_file()
 
 
+def test_cli_bench_writes_its_summary_with_the_given_diagnosis_settings(tmp_path, capsys):
+    from crisp_gym.sim2real.cli import main
+
+    out = tmp_path / "bench"
+    assert main(["bench", "--cases", "1", "--models", "servo", "--config.solver", "batched", "-o", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["cases"] == 1 and json.loads(capsys.readouterr().out)["cases"] == 1
+    assert len((out / "results.jsonl").read_text().splitlines()) == 1
+    with pytest.raises(SystemExit):  # tyro rejects a solver that is not one
+        main(["bench", "--cases", "1", "--config.solver", "scipy", "-o", str(out)])
+
+
 def test_cli_errors_cleanly(tmp_path, capsys):
     from crisp_gym.sim2real.cli import main
 

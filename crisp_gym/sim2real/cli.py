@@ -48,13 +48,16 @@ class Bench:
     out: Annotated[Path, tyro.conf.arg(aliases=["-o"])] = Path("gap_bench")
     """Folder for the cases' truth, the results table and the summary."""
     cases: int = 42
-    """Number of cases, spread over the servo, the Go2 and the humanoid."""
+    """Number of cases, spread round-robin over the models."""
     seed: int = 0
     noise_scale: tuple[float, ...] = (1.0,)
     """Multiples of the encoder noise to sweep (signal-to-noise)."""
-    models: tuple[str, ...] = ("servo", "go2", "humanoid")
+    models: tuple[str, ...] = ("servo", "go2", "humanoid", "arm", "rail_leg")
+    """Bench models: servo, go2, humanoid, arm, rail_leg."""
     families: tuple[str, ...] = ()
     """Draw in-library effects of these families only (default: all)."""
+    config: DiagnoseConfig = field(default_factory=lambda: DiagnoseConfig(show_progress=False))
+    """The diagnosis's settings for every case."""
 
 
 def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjModel]:
@@ -96,7 +99,7 @@ def run_bench(args: Bench) -> int:
     from crisp_gym.sim2real.bench import run_bench as bench
 
     summary = bench(BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale, models=args.models,
-                                families=args.families), args.out)
+                                families=args.families), args.out, args.config)
     print(json.dumps(summary, indent=1))
     return 0
 
