@@ -2,9 +2,11 @@
 
 For every clip of the run, the first periodic evaluation at which its success from RSI starts
 reached ``--success`` *and* the clip was tracked from frame 0 to its end, with the training
-frames, the wall time and the compute time (collection + update, without evaluations or time
-the process was stopped) up to that evaluation; then the same for all clips at once (what
-``--until-success`` stops on). Resumed segments are added up.
+frames, the wall time and the compute time (collection + update, without evaluations) up to
+that evaluation; then the same for all clips at once (what ``--until-success`` stops on).
+Resumed segments are added up. A process stopped with SIGSTOP logs its pause in the iteration it
+was in: iterations longer than ``--stall-factor`` times the run's median count as the median in
+the compute time, and how much that removed is printed.
 
     python benchmarks/library_progress.py ~/.cache/crisp-gym/runs/bundled_scratch --success 0.9
 """
@@ -27,6 +29,9 @@ class Args:
     """run directory (with progress.csv and config.json)"""
     success: float = 0.9
     """success from RSI starts each clip must reach"""
+    stall_factor: float = 5.0
+    """an iteration longer than this times the median iteration is a stall (the process was
+    stopped, or shared the cores with a heavy job) and counts as the median"""
 
 
 def clip_lengths(names: list[str]) -> dict[str, int]:
@@ -49,7 +54,10 @@ def main(args: Args) -> dict[str, dict[str, float] | None]:
         raise SystemExit(f"{args.run}/progress.csv has no periodic evaluations (train with --eval-every)")
     lengths = clip_lengths(names)
     wall = run_clock(float(row["time_s"]) for row in rows)
-    compute = np.cumsum([float(row["collect_s"]) + float(row["update_s"]) for row in rows])
+    iteration_s = np.array([float(row["collect_s"]) + float(row["update_s"]) for row in rows])
+    median = float(np.median(iteration_s))
+    stalls = iteration_s > args.stall_factor * median
+    compute = np.cumsum(np.where(stalls, median, iteration_s))
 
     def reached(row: dict[str, str], name: str) -> bool:
         return (float(row[f"eval_success/{name}"]) >= args.success
@@ -62,7 +70,8 @@ def main(args: Args) -> dict[str, dict[str, float] | None]:
         results[key] = None if hit is None else {"frames": float(rows[hit]["frames"]), "wall_min": wall[hit] / 60,
                                                   "compute_min": float(compute[hit]) / 60}
     print(f"{args.run}: first evaluation with success >= {args.success:.0%} from RSI starts and the whole clip "
-          f"from frame 0 ({rows[-1]['frames']} frames logged)\n")
+          f"from frame 0 ({rows[-1]['frames']} frames logged; {int(stalls.sum())} stalled iterations, "
+          f"{(iteration_s[stalls] - median).sum() / 60:.1f} min, left out of the compute time)\n")
     print("| clip | frames | wall time (min) | compute time (min) |\n|---|---:|---:|---:|")
     for key, hit in results.items():
         if hit is None:
