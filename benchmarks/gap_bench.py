@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import get_args
 
 from crisp_gym.sim2real.bench import BenchConfig, run_bench
 from crisp_gym.sim2real.diagnose import DiagnoseConfig
+from crisp_gym.sim2real.fit import Solver
 
 
 def main() -> None:
@@ -24,7 +26,7 @@ def main() -> None:
     ap.add_argument("--p-none", type=float, default=0.12)
     ap.add_argument("--p-outside", type=float, default=0.12)
     ap.add_argument("--p-compound", type=float, default=0.15, help="share of two-effect cases (multi-joint models)")
-    ap.add_argument("--solver", choices=["mujoco", "batched"], default="mujoco",
+    ap.add_argument("--solver", choices=get_args(Solver), default="mujoco",
                     help="the fits' Levenberg-Marquardt (DiagnoseConfig.solver)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()

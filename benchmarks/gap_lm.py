@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import get_args
 
 import numpy as np
 import tyro
 
 from crisp_gym.sim2real.bench import BenchConfig, _effect_of, _template, commands, draw_truth, scenario, synthesize
-from crisp_gym.sim2real.fit import Combo, Fitter
+from crisp_gym.sim2real.fit import Combo, Fitter, Solver
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
 
 
@@ -65,7 +66,7 @@ def main(args: Args) -> list[dict]:
         label = "+".join(p["effect"] + (f"@{p['joint']}" if p.get("joint") else "") for p in truth.get("parts", [truth]))
         for kind, combo in _fits(truth, tr):
             row = {"case": case, "model": sc.name, "effect": label, "fit": kind, "params": len(combo.params)}
-            for solver in ("mujoco", "batched"):
+            for solver in get_args(Solver):
                 fitter = Fitter(rep, args.max_iter, solver=solver)
                 tic = time.perf_counter()
                 result = fitter.fit(combo)

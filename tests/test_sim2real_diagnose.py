@@ -314,7 +314,7 @@ def test_part_signatures_measure_each_part_beside_the_other():
     truth = {"family": "coulomb_friction+encoder_bias", "effect": "compound", "parts": [friction, bias]}
     exact = synthesize(sc, truth, t, u, 0.0, rng)
     size_friction, size_bias = part_signatures(sc, truth, exact, 0.5)
-    alone = signature(sc, synthesize(sc, {**friction}, t, u, 0.0, rng), 0.5)
+    alone = signature(sc, synthesize(sc, friction, t, u, 0.0, rng), 0.5)
     assert size_friction == pytest.approx(alone, rel=0.05)
     assert size_bias < 0.01 * size_friction  # what is left: the replay of an exact log, not the bias
 

@@ -19,6 +19,7 @@ import tyro
 
 from crisp_gym.file_errors import reading
 from crisp_gym.npz import read_npz
+from crisp_gym.sim2real import bench
 from crisp_gym.sim2real.adapters import load_go2_npz, load_servo_json
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, diagnose
 from crisp_gym.sim2real.log import RealLog, load_log
@@ -52,7 +53,7 @@ class Bench:
     seed: int = 0
     noise_scale: tuple[float, ...] = (1.0,)
     """Multiples of the encoder noise to sweep (signal-to-noise)."""
-    models: tuple[str, ...] = ("servo", "go2", "humanoid", "arm", "rail_leg")
+    models: tuple[str, ...] = bench.BenchConfig.models
     """Bench models: servo, go2, humanoid, arm, rail_leg."""
     families: tuple[str, ...] = ()
     """Draw in-library effects of these families only (default: all)."""
@@ -95,11 +96,8 @@ def run_diagnose(args: Diagnose) -> int:
 
 
 def run_bench(args: Bench) -> int:
-    from crisp_gym.sim2real.bench import BenchConfig
-    from crisp_gym.sim2real.bench import run_bench as bench
-
-    summary = bench(BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale, models=args.models,
-                                families=args.families), args.out, args.config)
+    summary = bench.run_bench(bench.BenchConfig(cases=args.cases, seed=args.seed, noise_scales=args.noise_scale,
+                                                models=args.models, families=args.families), args.out, args.config)
     print(json.dumps(summary, indent=1))
     return 0
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Literal
+from typing import Literal, get_args
 
 import mujoco
 import numpy as np
@@ -176,8 +176,8 @@ class Fitter:
     def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2,
                  solver: Solver = "mujoco") -> None:
         """``restarts``: fresh-damping restarts of the batched solver after it stops."""
-        if solver not in ("mujoco", "batched"):
-            raise ValueError(f"unknown solver {solver!r}; expected 'mujoco' or 'batched'")
+        if solver not in get_args(Solver):
+            raise ValueError(f"unknown solver {solver!r}; expected one of {get_args(Solver)}")
         self.rep = replayer
         self.max_iter = max_iter
         self.restarts = restarts
