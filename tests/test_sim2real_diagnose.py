@@ -10,11 +10,12 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import BenchConfig, commands, scenario, synthesize
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose
+from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
 from crisp_gym.sim2real.fit import Combo, Fitter
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
-from crisp_gym.sim2real.report import REPORT_KEYS, write_report
+from crisp_gym.sim2real.log import RealLog
+from crisp_gym.sim2real.report import REPORT_KEYS, extrapolation_lines, write_report
 
 CFG = DiagnoseConfig(show_progress=False)
 
@@ -581,3 +582,27 @@ def test_gear_play_is_fitted_back_from_a_real_gap() -> None:
     assert gear.x[0] == pytest.approx(0.02, rel=0.15)
     for other in (fx.Backlash(joints=(joint,)), fx.CoulombFriction(joints=(joint,))):
         assert gear.train_gap < 0.6 * fitter.fit(Combo((other,), tr)).train_gap
+
+
+def test_a_sweep_held_out_at_its_end_is_flagged_as_faster_and_blocks_spread_it():
+    # a frequency sweep from 0.5 to 2 Hz: its last 30 % moves about twice as fast as the rest
+    t = np.arange(0, 20, 0.005)
+    phase = 2 * np.pi * (0.5 * t + 1.5 * t**2 / 40)
+    sweep = RealLog(time=t, qpos=0.3 * np.sin(phase)[:, None], ctrl=0.3 * np.sin(phase)[:, None],
+                    joint_names=("hinge",), actuator_names=("servo",))
+    fitted, held = sweep.holdout_blocks(0.3)
+    assert speed_ratio(fitted, held) > 1.5
+    fitted, held = sweep.holdout_blocks(0.3, blocks=8)
+    assert abs(speed_ratio(fitted, held) - 1.0) < 0.15
+    report = SimpleNamespace(heldout_speed_ratio=1.8, heldout="the last 30 % of every log")
+    assert "holdout-blocks" in " ".join(extrapolation_lines(report))
+    assert extrapolation_lines(SimpleNamespace(heldout_speed_ratio=1.1, heldout="held-out logs")) == []
+
+
+def test_held_out_blocks_of_one_log_find_its_delay():
+    truth = {"family": "delay", "effect": "actuator_delay", "joint": None, "x": [0.03], "x0": [0.01]}
+    sc, train, _ = _case(truth)
+    res = diagnose([(train, sc.model)], None, replace(CFG, holdout_blocks=3))
+    assert res.heldout == "the last 30 % of each of 3 equal parts of every log"
+    assert res.verdict == "explained" and abs(res.selected["parameters"][0]["value"] - 0.03) < 0.003
+    assert 0.67 < res.heldout_speed_ratio < 1.5  # the bench's commands do not change over the log

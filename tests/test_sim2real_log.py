@@ -114,3 +114,23 @@ def test_cli_model_gains_an_inert_support_placeholder(tmp_path):
             mujoco.mj_step(m, d)
         traj.append(d.qpos.copy())
     np.testing.assert_allclose(traj[0], traj[1], atol=1e-12)
+
+
+@pytest.mark.parametrize("blocks", [1, 2, 3, 5])
+def test_holdout_blocks_partition_the_log_in_time_order(blocks):
+    log = _log(time=np.arange(200) * 0.01, qpos=np.zeros((200, 1)), ctrl=np.zeros((200, 1)))
+    fitted, held = log.holdout_blocks(0.3, blocks)
+    assert len(fitted) == len(held) == blocks
+    spans = sorted(part.meta["slice"] for part in fitted + held)
+    assert spans[0][0] == 0 and spans[-1][1] == 200
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # back to back: no gap, no overlap
+    for f, h in zip(fitted, held):  # each block's held-out part follows its fitted part
+        assert f.meta["slice"][1] == h.meta["slice"][0]
+        assert abs(len(h.time) / (len(f.time) + len(h.time)) - 0.3) <= 1 / (len(f.time) + len(h.time))
+    if blocks == 1:
+        assert held[0].meta["slice"] == [140, 200]
+
+
+def test_too_many_holdout_blocks_raise():
+    with pytest.raises(ValueError, match="fewer blocks"):
+        _log().holdout_blocks(0.3, 4)  # 50 samples: held-out parts of 4 samples

@@ -36,7 +36,11 @@ class DiagnoseConfig:
     Attributes:
         window_s: replay window length (s); long enough to see the dynamics (a few PD
             time constants), short enough that errors do not compound.
-        holdout_fraction: without held-out logs, the last fraction of every log is held out.
+        holdout_fraction: without held-out logs, this fraction of every log is held out.
+        holdout_blocks: the held-out data is the last ``holdout_fraction`` of each of this many equal
+            parts of the log (1: its end). Several spread the held-out data over a log whose
+            excitation changes with time (a frequency sweep), where the end alone would also
+            test how the fit extrapolates to the fastest moves.
         bases: forward selection holds each of this many best single effects (of distinct
             families) and screens every other effect on top of it.
         pairs: forward selection fits this many of the best screened pairs jointly.
@@ -71,6 +75,7 @@ class DiagnoseConfig:
 
     window_s: float = 0.5
     holdout_fraction: float = 0.3
+    holdout_blocks: int = 1
     bases: int = 2
     pairs: int = 3
     screen_iter: int = 3
@@ -91,6 +96,9 @@ class DiagnoseConfig:
 
     def __post_init__(self) -> None:
         check_families(self.families)
+        if not 0.0 < self.holdout_fraction < 1.0 or self.holdout_blocks < 1:
+            raise ValueError(f"holdout_fraction must be in (0, 1) and holdout_blocks at least 1, got "
+                             f"{self.holdout_fraction} and {self.holdout_blocks}")
 
 
 @dataclass
@@ -110,13 +118,30 @@ class Candidate:
         return len(self.x)
 
 
-def _split(pairs: list[tuple[RealLog, mujoco.MjModel]], fraction: float):
+def _split(pairs: list[tuple[RealLog, mujoco.MjModel]], fraction: float, blocks: int):
     train, test = [], []
     for log, model in pairs:
-        a, b = log.split(1.0 - fraction)
-        train.append((a, model))
-        test.append((b, model))
+        fitted, held = log.holdout_blocks(fraction, blocks)
+        train += [(part, model) for part in fitted]
+        test += [(part, model) for part in held]
     return train, test
+
+
+def _heldout_label(cfg: DiagnoseConfig) -> str:
+    share = f"the last {100 * cfg.holdout_fraction:.0f} % of"
+    if cfg.holdout_blocks == 1:
+        return f"{share} every log"
+    return f"{share} each of {cfg.holdout_blocks} equal parts of every log"
+
+
+def speed_ratio(fitted: list[RealLog], heldout: list[RealLog]) -> float:
+    """How fast the held-out logs' joints move against the fitted ones': the median over joints
+    of the ratio of their mean absolute speeds (finite differences of the positions). Far from 1,
+    the held-out gap also measures how the fitted model extrapolates."""
+    def mean_speed(logs: list[RealLog]) -> np.ndarray:
+        steps = np.concatenate([np.abs(np.diff(lg.qpos, axis=0)) / np.diff(lg.time)[:, None] for lg in logs])
+        return steps.mean(axis=0)
+    return float(np.median(mean_speed(heldout) / np.maximum(mean_speed(fitted), 1e-12)))
 
 
 def resynthesize(rep: Replayer, combo: Combo, x: np.ndarray, rng: np.random.Generator) -> list[Trajectory]:
@@ -214,6 +239,7 @@ class Diagnosis:
     ranking: list[dict[str, Any]]
     skipped: list[dict[str, str]]
     heldout: str
+    heldout_speed_ratio: float
     config: dict[str, Any]
     selected: dict[str, Any] | None
     closest: dict[str, Any] | None
@@ -239,7 +265,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         raise ValueError("diagnose needs at least one log")
     split = holdout is None or not holdout
     if split:
-        train, holdout = _split(train, cfg.holdout_fraction)
+        train, holdout = _split(train, cfg.holdout_fraction, cfg.holdout_blocks)
     tr_train = [bind(log, model) for log, model in train]
     tr_test = [bind(log, model) for log, model in holdout]
     rep_train = Replayer(tr_train, make_windows(tr_train, cfg.window_s), cfg.nthread)
@@ -329,7 +355,8 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         where=where_before,
         ranking=[_row(c, gap_before, floor, names) for c in ranked],
         skipped=skipped,
-        heldout="time split" if split else "held-out logs",
+        heldout=_heldout_label(cfg) if split else "held-out logs",
+        heldout_speed_ratio=speed_ratio([log for log, _ in train], [log for log, _ in holdout]),
         config={k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
         selected=summary if selected is not None else None,
         closest=summary if selected is None else None,

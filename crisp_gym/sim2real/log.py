@@ -110,12 +110,23 @@ class RealLog:
                        ctrl_enabled=None if self.ctrl_enabled is None else self.ctrl_enabled[sl],
                        meta={**self.meta, "slice": [int(start), int(stop)]})
 
-    def split(self, fraction: float) -> tuple[RealLog, RealLog]:
-        """The first ``fraction`` of the samples and the rest."""
+    def holdout_blocks(self, fraction: float, blocks: int = 1) -> tuple[list[RealLog], list[RealLog]]:
+        """The log cut into ``blocks`` equal parts, each split into its first ``1 - fraction``
+        (fitted) and the rest (held out): the fitted parts and the held-out parts, in time order.
+        One block is the plain time split; several spread the held-out samples over the log, so
+        that a log whose excitation changes over time (a frequency sweep) is not judged only on
+        its end."""
+        if blocks < 1:
+            raise ValueError(f"holdout blocks must be at least 1, got {blocks}")
         if not 0.0 < fraction < 1.0:
-            raise ValueError(f"split fraction must be in (0, 1), got {fraction}")
-        k = int(round(fraction * len(self.time)))
-        return self.slice(0, k), self.slice(k, len(self.time))
+            raise ValueError(f"holdout fraction must be in (0, 1), got {fraction}")
+        edges = np.round(np.linspace(0, len(self.time), blocks + 1)).astype(int)
+        cuts = np.round(edges[:-1] + (1.0 - fraction) * np.diff(edges)).astype(int)
+        if np.any(cuts - edges[:-1] < 10) or np.any(edges[1:] - cuts < 10):
+            raise ValueError(f"{blocks} holdout blocks of {len(self.time)} samples leave a part shorter than "
+                             f"10 samples; use fewer blocks")
+        return ([self.slice(int(a), int(c)) for a, c in zip(edges[:-1], cuts)],
+                [self.slice(int(c), int(b)) for c, b in zip(cuts, edges[1:])])
 
 
 def save_log(log: RealLog, path: str | Path) -> Path:

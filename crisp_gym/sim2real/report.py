@@ -15,6 +15,8 @@ from crisp_gym.atomic import atomic_directory
 from crisp_gym.html_report import markdown_section, write_html_report
 from crisp_gym.sim2real.diagnose import Diagnosis
 
+EXTRAPOLATION_RATIO = 1.5
+"""Held-out joint speeds more than this factor above (or below) the fitted ones are flagged."""
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
 
@@ -45,6 +47,19 @@ def _fmt(x: float | None, digits: int = 4) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}g}"
 
 
+def extrapolation_lines(result: Diagnosis) -> list[str]:
+    """A warning when the held-out joints move at other speeds than the fitted ones: the held-out
+    gap then also measures the fit's extrapolation (``holdout_blocks`` spreads a split log's
+    held-out data over it)."""
+    ratio = result.heldout_speed_ratio
+    if 1 / EXTRAPOLATION_RATIO <= ratio <= EXTRAPOLATION_RATIO:
+        return []
+    hint = (" A log's excitation changes over time: `--config.holdout-blocks 3` holds out data spread over it."
+            if result.heldout != "held-out logs" else "")
+    return [f"The held-out joints move {ratio:.2g} times as fast as the fitted ones (median over joints): the "
+            f"held-out gap also measures how the fitted model extrapolates.{hint}"]
+
+
 def _markdown(result: Diagnosis, figures: list[str]) -> str:
     sel = result.selected or result.closest
     lines = ["# Sim-to-real gap diagnosis", ""]
@@ -69,7 +84,7 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
                      f"({100 * closest_shrink:.0f} % shrink); it is the nearest model, not a cause: an effect "
                      f"outside the library can be imitated by a mix of others.")
         lines += ["", *_residual_lines(result.residual)]
-    lines += ["", f"Held out: {result.heldout}.", ""]
+    lines += ["", f"Held out: {result.heldout}.", *extrapolation_lines(result), ""]
     if sel:
         lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
         for p in sel["parameters"]:
