@@ -12,9 +12,9 @@ from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
 from crisp_gym.sim2real.fit import Combo, Fitter
+from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
-from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.report import REPORT_KEYS, extrapolation_lines, write_report
 
 CFG = DiagnoseConfig(show_progress=False)
@@ -594,9 +594,12 @@ def test_a_sweep_held_out_at_its_end_is_flagged_as_faster_and_blocks_spread_it()
     assert speed_ratio(fitted, held) > 1.5
     fitted, held = sweep.holdout_blocks(0.3, blocks=8)
     assert abs(speed_ratio(fitted, held) - 1.0) < 0.15
-    report = SimpleNamespace(heldout_speed_ratio=1.8, heldout="the last 30 % of every log")
-    assert "holdout-blocks" in " ".join(extrapolation_lines(report))
-    assert extrapolation_lines(SimpleNamespace(heldout_speed_ratio=1.1, heldout="held-out logs")) == []
+    at_end = SimpleNamespace(heldout_speed_ratio=1.8, heldout="the last 30 % of every log",
+                             config={"holdout_blocks": 1})
+    assert "1.8 times as fast" in extrapolation_lines(at_end)[0] and "holdout-blocks" in extrapolation_lines(at_end)[0]
+    logs = SimpleNamespace(heldout_speed_ratio=0.5, heldout="held-out logs", config={"holdout_blocks": 1})
+    assert "0.5 times as fast" in extrapolation_lines(logs)[0] and "holdout-blocks" not in extrapolation_lines(logs)[0]
+    assert extrapolation_lines(SimpleNamespace(heldout_speed_ratio=1.1, heldout="held-out logs", config={})) == []
 
 
 def test_held_out_blocks_of_one_log_find_its_delay():

@@ -54,8 +54,9 @@ def extrapolation_lines(result: Diagnosis) -> list[str]:
     ratio = result.heldout_speed_ratio
     if 1 / EXTRAPOLATION_RATIO <= ratio <= EXTRAPOLATION_RATIO:
         return []
-    hint = (" A log's excitation changes over time: `--config.holdout-blocks 3` holds out data spread over it."
-            if result.heldout != "held-out logs" else "")
+    split_at_end = result.heldout != "held-out logs" and result.config.get("holdout_blocks", 1) == 1
+    hint = (" If the log's excitation changes over time (a sweep), `--config.holdout-blocks 3` holds out data "
+            "spread over it." if split_at_end else "")
     return [f"The held-out joints move {ratio:.2g} times as fast as the fitted ones (median over joints): the "
             f"held-out gap also measures how the fitted model extrapolates.{hint}"]
 
