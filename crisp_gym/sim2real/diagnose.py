@@ -127,6 +127,10 @@ def _split(pairs: list[tuple[RealLog, mujoco.MjModel]], fraction: float, blocks:
     return train, test
 
 
+HELDOUT_LOGS = "held-out logs"
+"""``Diagnosis.heldout`` when the held-out data were logs of their own (not a split of the fitted ones)."""
+
+
 def _heldout_label(cfg: DiagnoseConfig) -> str:
     share = f"the last {100 * cfg.holdout_fraction:.0f} % of"
     if cfg.holdout_blocks == 1:
@@ -355,7 +359,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[Re
         where=where_before,
         ranking=[_row(c, gap_before, floor, names) for c in ranked],
         skipped=skipped,
-        heldout=_heldout_label(cfg) if split else "held-out logs",
+        heldout=_heldout_label(cfg) if split else HELDOUT_LOGS,
         heldout_speed_ratio=speed_ratio([log for log, _ in train], [log for log, _ in holdout]),
         config={k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
         selected=summary if selected is not None else None,

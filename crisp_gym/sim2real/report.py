@@ -13,7 +13,7 @@ import numpy as np
 
 from crisp_gym.atomic import atomic_directory
 from crisp_gym.html_report import markdown_section, write_html_report
-from crisp_gym.sim2real.diagnose import Diagnosis
+from crisp_gym.sim2real.diagnose import HELDOUT_LOGS, Diagnosis
 
 EXTRAPOLATION_RATIO = 1.5
 """Held-out joint speeds more than this factor above (or below) the fitted ones are flagged."""
@@ -54,7 +54,7 @@ def extrapolation_lines(result: Diagnosis) -> list[str]:
     ratio = result.heldout_speed_ratio
     if 1 / EXTRAPOLATION_RATIO <= ratio <= EXTRAPOLATION_RATIO:
         return []
-    split_at_end = result.heldout != "held-out logs" and result.config.get("holdout_blocks", 1) == 1
+    split_at_end = result.heldout != HELDOUT_LOGS and result.config.get("holdout_blocks", 1) == 1
     hint = (" If the log's excitation changes over time (a sweep), `--config.holdout-blocks 3` holds out data "
             "spread over it." if split_at_end else "")
     return [f"The held-out joints move {ratio:.2g} times as fast as the fitted ones (median over joints): the "
