@@ -70,13 +70,20 @@ def test_a_browser_draws_the_scene_and_the_humanoids(walk, tmp_path):
                                     "policy": (rollout, SIMULATED_RGB, 1.0)})
         shot = tmp_path / "view.png"
         software_webgl = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
-        subprocess.run([CHROMIUM, "--headless", "--no-sandbox", *software_webgl, "--virtual-time-budget=8000",
-                        "--window-size=1000,700", f"--screenshot={shot}", f"http://127.0.0.1:{port}"],
-                       capture_output=True, timeout=120, check=True)
+        # The screenshot is taken when the page's virtual time runs out, and virtual time does not
+        # wait for the scene arriving over the websocket: on a loaded machine the first page can
+        # be drawn before the humanoids reach it (63 of the >300 pixels once in CI), so a fresh
+        # page gets up to three tries, each with more virtual time.
+        for budget_ms in (8000, 16000, 32000):
+            subprocess.run([CHROMIUM, "--headless", "--no-sandbox", *software_webgl,
+                            f"--virtual-time-budget={budget_ms}", "--window-size=1000,700", f"--screenshot={shot}",
+                            f"http://127.0.0.1:{port}"], capture_output=True, timeout=120, check=True)
+            image = iio.imread(shot)[..., :3].astype(int)
+            orange = (np.abs(image - SIMULATED_RGB).max(axis=-1) < 60) & (image[..., 0] > image[..., 2] + 40)
+            if orange.sum() > 300:
+                break
     finally:
         server.stop()
-    image = iio.imread(shot)[..., :3].astype(int)
-    orange = (np.abs(image - SIMULATED_RGB).max(axis=-1) < 60) & (image[..., 0] > image[..., 2] + 40)
     assert orange.sum() > 300  # the simulated humanoid is drawn (not only the page around the canvas)
     assert image[100:600, 100:900].std() > 10
 
