@@ -1,4 +1,4 @@
-"""Motion import over real files: time, up axis, grounding of the planted feet, skating.
+"""Motion import over real files: time, up axis, grounding of the planted feet, skating, balance.
 
 Every motion file of a folder (default: the SMPL motions estimated from real videos in
 ``../shared/data/asap_video_smpl``) is read as ``crisp import-motion`` reads it
@@ -6,7 +6,9 @@ Every motion file of a folder (default: the SMPL motions estimated from real vid
 (the default) and once by one constant offset (the former behaviour), and a Markdown table is
 printed. Planted feet are those of :func:`crisp_gym.motion.planted_feet`; a foot's height is the
 lower of its ankle's and toe's sole points, and a frame's planted-foot height is that of its lowest
-planted foot. Target: median planted-foot height within 1 cm of the floor for every file.
+planted foot. Target: median planted-foot height within 1 cm of the floor for every file. Balance is
+what the import reports (:func:`crisp_gym.balance.followability`): the shares of frames whose centre
+of pressure lies over 10 cm outside the feet on the floor, and with no foot down under load.
 
     python benchmarks/motion_import.py [FOLDER]
 """
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crisp_gym.balance import followability
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.import_motion import MOTION_SUFFIXES, read_motion
 from crisp_gym.metrics import foot_heights, foot_skating, sole_points
@@ -47,9 +50,10 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"no motion files in {args.folder}")
     model = build_humanoid()
     print("| file | frames | fps | up axis | import (s) | planted-foot height median, stance / constant (cm) "
-          "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) |")
-    print("|---|---|---|---|---|---|---|---|")
-    medians = []
+          "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) "
+          "| balance: CoP > 10 cm outside / no foot down (%) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    medians, followable = [], 0
     for file in files:
         start = time.perf_counter()
         read = read_motion(file, model=model)
@@ -58,13 +62,16 @@ def main(argv: list[str] | None = None) -> None:
         h_stance, skating = planted_foot_heights(read.motion, model)
         h_constant, _ = planted_foot_heights(constant.motion, model)
         medians.append(np.median(np.abs(h_stance)))
+        follow = followability(read.motion)
+        followable += not follow.spans
         print(f"| {file.name} | {read.motion.num_frames} | {read.source_fps:g} | {read.up_axis} | {seconds:.2f} "
               f"| {100 * np.median(h_stance):.2f} / {100 * np.median(h_constant):.2f} "
               f"| {100 * np.percentile(np.abs(h_stance), 90):.2f} / {100 * np.percentile(np.abs(h_constant), 90):.2f} "
-              f"| {100 * skating:.1f} |")
+              f"| {100 * skating:.1f} | {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f} |")
     medians = np.array(medians)
     print(f"\n{len(files)} files; median |planted-foot height| per file: median {100 * np.median(medians):.2f} cm, "
-          f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}")
+          f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}; "
+          f"followable on their feet (no frame span flagged): {followable}/{len(files)}")
 
 
 if __name__ == "__main__":

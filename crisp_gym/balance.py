@@ -8,12 +8,16 @@ asks for one outside the polygon, no controller can follow it without falling or
 away; a tracking policy either learns to deviate or fails there. This is why synthetic
 references are planned so that it stays inside, and it says how followable an imported clip is.
 
+:func:`followability` sums this up for a whole motion (what ``crisp import-motion`` reports):
+how often the centre of pressure leaves the planted feet, how often no foot is down while the
+ground must carry the body, and the frame spans where either happens.
+
 All positions are in metres, in the world frame of the motion; frames are the motion's.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -75,17 +79,15 @@ def motion_balance(motion: Motion, stature: float = 1.70) -> Balance:
     motion = motion.in_humanoid_order()
     qpos, qvel = motion.qpos(), motion.qvel()
     qacc = np.gradient(qvel, 1.0 / motion.fps, axis=0)
-    feet = [BODY_NAMES.index(b) for b in FEET]
+    soles = _sole_boxes(model)
+    feet = list(soles)
     contacts = motion.contacts
     if contacts is None:
         contacts = np.zeros((motion.num_frames, len(BODY_NAMES)), dtype=bool)
         contacts[:, feet] = True
     others = [i for i in range(len(BODY_NAMES)) if i not in feet]
-    soles = {i: [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(BODY_NAMES[i]).id
-                 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX] for i in feet}
     root = model.body(BODY_NAMES[0]).id
     weight = float(model.body_subtreemass[root]) * GRAVITY
-    corners = np.array([[x, y, -1.0] for x in (-1.0, 1.0) for y in (-1.0, 1.0)])
 
     t = motion.num_frames
     cop, outside, vertical = np.full((t, 2), np.nan), np.full(t, np.nan), np.zeros(t)
@@ -98,9 +100,7 @@ def motion_balance(motion: Motion, stature: float = 1.70) -> Balance:
         touching = [i for i in feet if contacts[k, i]]
         if not touching or force[2] <= 0:
             continue
-        points = np.concatenate([
-            data.geom_xpos[g] + (data.geom_xmat[g].reshape(3, 3) @ (corners * model.geom_size[g]).T).T
-            for i in touching for g in soles[i]])
+        points = np.concatenate([_sole_corners(model, data, soles[i]) for i in touching])
         ground = points[:, 2].min()
         # The wrench (force, moment about the root) acts at p on z = ground where its horizontal
         # moment vanishes: moment + (root - p) x force has zero x and y components.
@@ -111,3 +111,103 @@ def motion_balance(motion: Motion, stature: float = 1.70) -> Balance:
         if not contacts[k, others].any():
             outside[k] = distance_outside_hull(points[:, :2], cop[k])
     return Balance(cop=cop, vertical_force=vertical, outside=outside)
+
+
+@dataclass(frozen=True)
+class Followability:
+    """How much of a motion a body can balance through on its own feet (:func:`followability`).
+
+    Attributes:
+        outside: share of the judged frames whose centre of pressure lies more than ``margin``
+            outside the feet in contact.
+        unsupported: share of all frames on which nothing touches the ground while the ground
+            has to carry more than ``min_support`` of the body's weight (a foot that slides or
+            hovers where the motion stands on it).
+        spans: ``(first, end)`` frame ranges (``end`` excluded) where either happens.
+        margin: metres (m), the threshold of ``outside``.
+        min_support: body weights, the threshold of ``unsupported``.
+    """
+
+    outside: float
+    unsupported: float
+    spans: tuple[tuple[int, int], ...]
+    margin: float
+    min_support: float
+
+    def describe(self, max_spans: int = 6) -> str:
+        """One line for the user."""
+        head = (f"balance: centre of pressure over {100 * self.margin:.0f} cm outside the feet on "
+                f"{100 * self.outside:.0f} % of judged frames, no foot down under load on "
+                f"{100 * self.unsupported:.0f} %")
+        if not self.spans:
+            return head + " (a body can follow it on its feet)"
+        shown = ", ".join(f"{a}-{b - 1}" for a, b in self.spans[:max_spans])
+        more = f" and {len(self.spans) - max_spans} more" if len(self.spans) > max_spans else ""
+        return f"{head}: frames {shown}{more} (more than feet can give: a tracking policy has to deviate there)"
+
+    def to_json(self) -> dict:
+        return {"outside": self.outside, "unsupported": self.unsupported, "spans": [list(s) for s in self.spans],
+                "margin": self.margin, "min_support": self.min_support}
+
+
+def followability(motion: Motion, margin: float = 0.10, min_support: float = 0.5, floor: float = 0.0,
+                  touch: float = 0.03, bridge: int = 3, min_span: int = 3) -> Followability:
+    """Where ``motion`` asks for a centre of pressure more than ``margin`` m outside the feet in
+    contact, or for more than ``min_support`` body weights from the ground with nothing touching
+    it (:class:`Followability`).
+
+    Contacts are the motion's own; without them (an imported motion on a flat floor at height
+    ``floor``), a foot touches the floor when its sole comes within ``touch`` m of it, sliding or
+    not: a sliding foot still pushes, a hovering one cannot. Flagged frames closer than
+    ``bridge`` frames are one span; spans shorter than ``min_span`` frames are left out of
+    ``spans`` (not of the shares).
+    """
+    if motion.contacts is None:
+        motion = replace(motion, contacts=_feet_on_floor(motion, floor, touch))
+    balance = motion_balance(motion)
+    judged = np.isfinite(balance.outside)
+    unbalanced = np.where(judged, balance.outside, -np.inf) > margin
+    unsupported = ~motion.contacts.any(axis=1) & (balance.vertical_force > min_support)
+    return Followability(outside=float(unbalanced[judged].mean()) if judged.any() else 0.0,
+                         unsupported=float(unsupported.mean()), spans=_spans(unbalanced | unsupported, bridge, min_span),
+                         margin=margin, min_support=min_support)
+
+
+def _feet_on_floor(motion: Motion, floor: float, touch: float) -> np.ndarray:
+    """(T, 24) bool: the foot bodies whose soles reach within ``touch`` of ``floor``."""
+    model = build_humanoid(HumanoidConfig())
+    data = mujoco.MjData(model)
+    soles = _sole_boxes(model)
+    qpos = motion.in_humanoid_order().qpos()
+    out = np.zeros((len(qpos), len(BODY_NAMES)), dtype=bool)
+    for k in range(len(qpos)):
+        data.qpos[:] = qpos[k]
+        mujoco.mj_kinematics(model, data)
+        for i, geoms in soles.items():
+            out[k, i] = _sole_corners(model, data, geoms)[:, 2].min() <= floor + touch
+    return out
+
+
+def _sole_boxes(model: mujoco.MjModel) -> dict[int, list[int]]:
+    """Each foot body's index in ``BODY_NAMES`` with its box geoms (the soles)."""
+    return {BODY_NAMES.index(b): [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(b).id
+                                  and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX] for b in FEET}
+
+
+def _sole_corners(model: mujoco.MjModel, data: mujoco.MjData, geoms: list[int]) -> np.ndarray:
+    """(4 len(geoms), 3) world corners of the bottom faces (local -z) of the box ``geoms``."""
+    bottom = np.array([[x, y, -1.0] for x in (-1.0, 1.0) for y in (-1.0, 1.0)])
+    return np.concatenate([data.geom_xpos[g] + (data.geom_xmat[g].reshape(3, 3) @ (bottom * model.geom_size[g]).T).T
+                           for g in geoms])
+
+
+def _spans(flags: np.ndarray, bridge: int, min_span: int) -> tuple[tuple[int, int], ...]:
+    """Runs of ``flags`` as ``(first, end)``, runs less than ``bridge`` frames apart joined,
+    runs shorter than ``min_span`` dropped."""
+    runs: list[list[int]] = []
+    for k in np.flatnonzero(flags):
+        if runs and k - runs[-1][1] < bridge:
+            runs[-1][1] = int(k) + 1
+        else:
+            runs.append([int(k), int(k) + 1])
+    return tuple((a, b) for a, b in runs if b - a >= min_span)

@@ -38,6 +38,7 @@ import numpy as np
 import tyro
 from tqdm.auto import tqdm
 
+from crisp_gym.balance import Followability, followability
 from crisp_gym.clip import write_clip
 from crisp_gym.file_errors import reading
 from crisp_gym.humanoid import build_humanoid
@@ -202,15 +203,17 @@ def clip_name_for(prefix: str, file: Path) -> str:
 
 
 def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
-                model: mujoco.MjModel) -> ReadMotion:
-    """Read ``file``, write it as clip ``name`` at ``output`` and register it."""
+                model: mujoco.MjModel) -> tuple[ReadMotion, Followability]:
+    """Read ``file``, write it as clip ``name`` at ``output`` and register it; also say where
+    its body cannot balance on its feet (``meta.json``'s ``followability``)."""
     read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model)
+    follow = followability(read.motion)
     meta = {"name": name, "source": "import-motion", "input": str(file.resolve()), "fps": read.motion.fps,
             "source_format": read.source_format, "source_fps": read.source_fps, "up_axis": read.up_axis,
-            "grounding": args.grounding}
+            "grounding": args.grounding, "followability": follow.to_json()}
     write_clip(output, [floor_box()], read.motion, meta, overwrite=args.overwrite)
     register_clip(name, output, tags=["imported", "flat"])
-    return read
+    return read, follow
 
 
 def import_motion(args: ImportMotionArgs) -> list[Path]:
@@ -220,8 +223,8 @@ def import_motion(args: ImportMotionArgs) -> list[Path]:
     model = build_humanoid()
     if not args.file.is_dir():
         out = args.output or clips_dir / args.name
-        read = import_file(args.file, args.name, out, args, model)
-        print(f"read {args.file.name}: {read.describe()}\nwrote clip '{args.name}' to {out}")
+        read, follow = import_file(args.file, args.name, out, args, model)
+        print(f"read {args.file.name}: {read.describe()}\n{follow.describe()}\nwrote clip '{args.name}' to {out}")
         return [out]
     files = sorted(f for f in args.file.iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES)
     if not files:
@@ -231,11 +234,11 @@ def import_motion(args: ImportMotionArgs) -> list[Path]:
         name = clip_name_for(args.name, file)
         out = (args.output or clips_dir) / name
         try:
-            read = import_file(file, name, out, args, model)
+            read, follow = import_file(file, name, out, args, model)
         except (ValueError, FileNotFoundError, FileExistsError) as err:
             failed.append(f"{file.name}: {err}")
             continue
-        tqdm.write(f"{name}: {read.describe()}")
+        tqdm.write(f"{name}: {read.describe()}; {follow.describe(max_spans=3)}")
         written.append(out)
     print(f"imported {len(written)} of {len(files)} files from {args.file}")
     if failed:

@@ -1,4 +1,5 @@
-"""Centre of pressure by inverse dynamics: statics, a known acceleration, and the synthetic clips."""
+"""Centre of pressure by inverse dynamics: statics, a known acceleration, and the synthetic clips;
+followability (where a motion asks more than feet can give) on motions with a known answer."""
 
 from __future__ import annotations
 
@@ -6,18 +7,20 @@ import mujoco
 import numpy as np
 import pytest
 
-from crisp_gym.balance import GRAVITY, distance_outside_hull, motion_balance
+from crisp_gym.balance import GRAVITY, _spans, distance_outside_hull, followability, motion_balance
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion
 from crisp_gym.synth.clips import KINDS, make_clip
 
 
-def _standing(frames: int, root_x: np.ndarray | None = None) -> Motion:
-    """The rest pose (arms out, feet on z = 0), its root moved along x by ``root_x``."""
+def _standing(frames: int, root_x: np.ndarray | None = None, root_z: np.ndarray | None = None) -> Motion:
+    """The rest pose (arms out, feet on z = 0), its root moved along x by ``root_x`` and up by ``root_z``."""
     model = build_humanoid(HumanoidConfig())
     root = np.tile(model.qpos0[:3], (frames, 1))
     if root_x is not None:
         root[:, 0] += root_x
+    if root_z is not None:
+        root[:, 2] += root_z
     contacts = np.zeros((frames, len(BODY_NAMES)), dtype=bool)
     contacts[:, [BODY_NAMES.index(b) for b in FEET]] = True
     return Motion(fps=30.0, root_pos=root, root_quat=np.tile(model.qpos0[3:7], (frames, 1)),
@@ -92,3 +95,53 @@ def test_synthetic_clips_ask_for_a_centre_of_pressure_the_feet_can_give(kind, se
     assert np.isfinite(balance.outside).mean() > 0.5
     assert balance.share_outside(0.10) < 0.06
     assert np.nanmax(balance.outside) < 0.25
+
+
+def _unlabelled(motion: Motion) -> Motion:
+    return Motion(fps=motion.fps, root_pos=motion.root_pos, root_quat=motion.root_quat, dof_pos=motion.dof_pos)
+
+
+def test_standing_on_the_floor_is_followable():
+    follow = followability(_unlabelled(_standing(30)))
+    assert follow.outside == 0.0 and follow.unsupported == 0.0 and follow.spans == ()
+    assert "a body can follow it" in follow.describe()
+
+
+def test_feet_that_hover_while_the_body_needs_carrying_are_flagged():
+    """Standing still 5 cm above the floor: the ground must carry the whole weight, and no foot
+    reaches it (a sliding foot would, and is not flagged)."""
+    follow = followability(_unlabelled(_standing(30, root_z=np.full(30, 0.05))))
+    assert follow.unsupported == 1.0 and follow.spans == ((0, 30),)
+    assert "frames 0-29" in follow.describe()
+    sliding = followability(_unlabelled(_standing(30, root_x=np.linspace(0.0, 1.0, 30))))
+    assert sliding.unsupported == 0.0
+
+
+def test_a_body_in_free_fall_asks_nothing_of_the_ground():
+    t = np.arange(20) / 30.0
+    follow = followability(_unlabelled(_standing(20, root_z=0.5 - 0.5 * GRAVITY * t**2 + 0.5 * GRAVITY * t[-1] ** 2)))
+    # The feet are off the floor, but nothing pushes on them; only the end frames, whose
+    # accelerations are not measured (their velocities repeat their neighbours'), look held.
+    assert follow.unsupported <= 2 / 20 and follow.spans == ()
+
+
+def test_an_acceleration_the_feet_cannot_give_is_flagged_where_it_happens():
+    # 2 m/s^2 puts the centre of pressure 19 cm behind the centre of mass, behind the heels
+    # (test above); standing still before and after it is followable.
+    x = np.zeros(60)
+    t = np.arange(20) / 30.0
+    x[20:40] = 0.5 * 2.0 * t**2
+    x[40:] = x[39] + 2.0 * t[-1] * np.arange(1, 21) / 30.0  # then gliding at constant speed
+    follow = followability(_unlabelled(_standing(60, root_x=x)))
+    assert len(follow.spans) == 1
+    first, end = follow.spans[0]
+    assert 18 <= first <= 21 and 38 <= end <= 42  # the accelerating frames (give or take the differences)
+    assert follow.outside == pytest.approx((end - first) / 60, abs=0.02)
+
+
+def test_flagged_runs_join_across_short_gaps_and_short_runs_are_dropped():
+    flags = np.zeros(30, dtype=bool)
+    flags[[2, 3, 4, 6, 7, 20, 25, 26, 27]] = True
+    assert _spans(flags, bridge=2, min_span=3) == ((2, 8), (25, 28))
+    assert _spans(flags, bridge=1, min_span=3) == ((2, 5), (25, 28))
+    assert _spans(flags, bridge=6, min_span=1) == ((2, 8), (20, 28))

@@ -183,6 +183,21 @@ def test_folder_import_names_clips_and_reports_failures(walk, tmp_path, capsys):
     assert load_clip("take_walk_one").meta["source_format"] == "BeyondMimic"
 
 
+def test_an_import_says_where_its_body_cannot_balance(walk, tmp_path, capsys):
+    """The bundled walk is balanced by construction; lifted 5 cm off the floor from frame 40 on,
+    it hovers, and the report names those frames (in ``meta.json`` and on the terminal)."""
+    lifted = replace(walk, root_pos=walk.root_pos + np.where(np.arange(walk.num_frames)[:, None] >= 40, [0, 0, 0.05], 0))
+    for name, motion in (("walk_as_is", walk), ("walk_lifted", lifted)):
+        path = write_motion_npz(motion, tmp_path / f"{name}.npz", "beyondmimic")
+        assert cli.main(["import-motion", str(path), "--name", name, "-o", str(tmp_path / name),
+                         "--grounding", "constant"]) == 0
+    out = capsys.readouterr().out
+    as_is, lifted_meta = (load_clip(n).meta["followability"] for n in ("walk_as_is", "walk_lifted"))
+    assert as_is["unsupported"] == 0.0 and "a body can follow it" in out
+    assert lifted_meta["unsupported"] > 0.5 and lifted_meta["spans"][-1][1] == walk.num_frames
+    assert 38 <= lifted_meta["spans"][0][0] <= 42 and "no foot down under load" in out
+
+
 @pytest.mark.parametrize("name", ["../../escape", "a b", "", ".hidden", "x/y"])
 def test_bad_names_are_refused_before_any_work(name, walk, tmp_path):
     path = write_motion_npz(walk, tmp_path / "m.npz", "beyondmimic")
