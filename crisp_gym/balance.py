@@ -124,7 +124,7 @@ class Followability:
             has to carry more than ``min_support`` of the body's weight (a foot that slides or
             hovers where the motion stands on it).
         spans: ``(first, end)`` frame ranges (``end`` excluded) where either happens.
-        margin: metres (m), the threshold of ``outside``.
+        margin: m, the threshold of ``outside``.
         min_support: body weights, the threshold of ``unsupported``.
     """
 
@@ -146,6 +146,7 @@ class Followability:
         return f"{head}: frames {shown}{more} (more than feet can give: a tracking policy has to deviate there)"
 
     def to_json(self) -> dict:
+        """The fields as ``meta.json`` holds them (spans as lists)."""
         return {"outside": self.outside, "unsupported": self.unsupported, "spans": [list(s) for s in self.spans],
                 "margin": self.margin, "min_support": self.min_support}
 
