@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from crisp_gym.sim2real import effects as fx
-from crisp_gym.sim2real.bench import BenchConfig, commands, scenario, synthesize
+from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
 from crisp_gym.sim2real.fit import Combo, Fitter
 from crisp_gym.sim2real.log import RealLog
@@ -18,6 +18,7 @@ from crisp_gym.sim2real.replay import Replayer, bind, make_windows
 from crisp_gym.sim2real.report import REPORT_KEYS, extrapolation_lines, write_report
 
 CFG = DiagnoseConfig(show_progress=False)
+needs_go2 = pytest.mark.skipif(not GO2_XML.is_file(), reason=f"{GO2_XML} (../shared/data) is not present")
 
 
 def _case(truth: dict, seed: int = 0):
@@ -67,6 +68,7 @@ def test_outside_effect_is_unexplained(tmp_path):
     assert "not a cause" in text and "What remains" in text
 
 
+@needs_go2
 def test_residual_structure_finds_the_joint_and_band_of_a_known_residual():
     from crisp_gym.sim2real.gap import residual_structure
 
@@ -108,6 +110,7 @@ def test_a_drive_saturating_at_one_percent_of_its_limit_fits_back():
     assert res.x[0] == pytest.approx(0.01, rel=0.1)
 
 
+@needs_go2
 def test_both_solvers_fit_a_per_joint_effect_through_its_diagonal_jacobian():
     """Damping on one Go2 joint, fitted with a parameter per joint: each solver finds it on
     that joint (and next to nothing elsewhere) at the same gap, MuJoCo's with fewer rollouts
@@ -300,6 +303,7 @@ def test_bench_scores_a_weak_part_of_two_effects_apart():
     assert not weak_delay["correct"]  # the delay was the part left to see: naming it alone is not enough
 
 
+@needs_go2
 def test_part_signatures_measure_each_part_beside_the_other():
     """A part's size beside the other is the gap the other alone leaves on the truth's exact
     log: a large friction beside a tiny bias is large, the bias beside the friction tiny."""
@@ -433,6 +437,7 @@ def test_a_com_shift_moves_a_body_compiled_with_its_com_at_its_origin():
     assert qacc[0] != 0.0 and qacc[1] == pytest.approx(qacc[0], rel=1e-9)
 
 
+@needs_go2
 def test_a_payload_at_the_foot_is_found_with_its_mass():
     sc = scenario("go2", BenchConfig())
     rng = np.random.default_rng(9)
