@@ -466,6 +466,7 @@ def test_bench_draws_two_effects_on_two_joints():
 
 
 @pytest.mark.slow
+@needs_go2
 def test_different_effects_on_different_joints_are_found_together():
     """Damping on one joint of the Go2 and armature on another: no single family explains
     both; the per-joint mixture (or forward selection) does."""
