@@ -8,7 +8,9 @@ printed. Planted feet are those of :func:`crisp_gym.motion.planted_feet`; a foot
 lower of its ankle's and toe's sole points, and a frame's planted-foot height is that of its lowest
 planted foot. Target: median planted-foot height within 1 cm of the floor for every file. Balance is
 what the import reports (:func:`crisp_gym.balance.followability`): the shares of frames whose centre
-of pressure lies over 10 cm outside the feet on the floor, and with no foot down under load.
+of pressure lies over 10 cm outside the feet on the floor, and with no foot down under load. Every
+planted foot, not only the lowest: the shares more than 1 and 2 cm above the floor, with the legs
+bent to plant them (the default) and as read (``plant_feet=False``).
 
     python benchmarks/motion_import.py [FOLDER]
 """
@@ -25,7 +27,7 @@ from crisp_gym.balance import followability
 from crisp_gym.humanoid import build_humanoid
 from crisp_gym.import_motion import MOTION_SUFFIXES, read_motion
 from crisp_gym.metrics import foot_heights, foot_skating, sole_points
-from crisp_gym.motion import Motion, planted_feet
+from crisp_gym.motion import Motion, planted_feet, side_sole_heights
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "asap_video_smpl"
 
@@ -41,6 +43,16 @@ def planted_foot_heights(motion: Motion, model) -> tuple[np.ndarray, float]:
     return height[np.isfinite(height)], skating.mean_speed
 
 
+def floating_share(motion: Motion, model, above: float) -> float:
+    """The share of planted feet (each foot in each frame it is planted) whose lowest point (of its
+    collision geoms, what meets the floor in simulation) is more than ``above`` metres over the
+    floor: mostly the other foot of a frame grounded on its lower one."""
+    planted = planted_feet(motion, model)
+    if not planted.any():
+        return 0.0
+    return float(np.mean(side_sole_heights(motion, model)[planted] > above))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, nargs="?", default=DEFAULT_FOLDER)
@@ -51,14 +63,18 @@ def main(argv: list[str] | None = None) -> None:
     model = build_humanoid()
     print("| file | frames | fps | up axis | import (s) | planted-foot height median, stance / constant (cm) "
           "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) "
+          "| planted feet > 1 cm / > 2 cm above the floor, planted / legs as read (%) "
           "| balance: CoP > 10 cm outside / no foot down (%) |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    medians, followable = [], 0
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    medians, followable, floating = [], 0, []
     for file in files:
         start = time.perf_counter()
         read = read_motion(file, model=model)
         seconds = time.perf_counter() - start
         constant = read_motion(file, grounding="constant", model=model)
+        unplanted = read_motion(file, model=model, plant_feet=False).motion
+        shares = [floating_share(m, model, h) for m in (read.motion, unplanted) for h in (0.01, 0.02)]
+        floating.append(shares)
         h_stance, skating = planted_foot_heights(read.motion, model)
         h_constant, _ = planted_foot_heights(constant.motion, model)
         medians.append(np.median(np.abs(h_stance)))
@@ -67,11 +83,18 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {file.name} | {read.motion.num_frames} | {read.source_fps:g} | {read.up_axis} | {seconds:.2f} "
               f"| {100 * np.median(h_stance):.2f} / {100 * np.median(h_constant):.2f} "
               f"| {100 * np.percentile(np.abs(h_stance), 90):.2f} / {100 * np.percentile(np.abs(h_constant), 90):.2f} "
-              f"| {100 * skating:.1f} | {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f} |")
+              f"| {100 * skating:.1f} | {100 * shares[0]:.1f} / {100 * shares[1]:.1f}, "
+              f"{100 * shares[2]:.1f} / {100 * shares[3]:.1f} "
+              f"| {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f} |")
     medians = np.array(medians)
     print(f"\n{len(files)} files; median |planted-foot height| per file: median {100 * np.median(medians):.2f} cm, "
           f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}; "
           f"followable on their feet (no frame span flagged): {followable}/{len(files)}")
+    floating = 100 * np.array(floating)
+    print(f"planted feet > 1 cm / > 2 cm above the floor, median over files: planted {np.median(floating[:, 0]):.1f} / "
+          f"{np.median(floating[:, 1]):.1f} %, legs as read {np.median(floating[:, 2]):.1f} / "
+          f"{np.median(floating[:, 3]):.1f} %; worst file {floating[:, 0].max():.1f} / {floating[:, 1].max():.1f} % "
+          f"against {floating[:, 2].max():.1f} / {floating[:, 3].max():.1f} %")
 
 
 if __name__ == "__main__":

@@ -24,7 +24,9 @@ parameter files that carry none); the clip is resampled to ``--fps``. The up axi
 SMPL-family files is detected unless given (:func:`crisp_gym.bvh.detect_up_axis`,
 :func:`crisp_gym.smpl.detect_up_axis`) and reported. Every import is grounded frame by frame from
 its planted feet (:func:`crisp_gym.motion.ground_stance`; captures also get their planted feet
-laid flat, :func:`crisp_gym.motion.level_feet`), or by one offset with ``--grounding constant``.
+laid flat, :func:`crisp_gym.motion.level_feet`, and a planted foot left above the floor brought
+down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`), or by one offset with
+``--grounding constant``.
 """
 
 from __future__ import annotations
@@ -77,6 +79,9 @@ class ImportMotionArgs:
     """Up axis of BVH and SMPL-family input (auto: detected and reported)."""
     grounding: Grounding = "stance"
     """stance: planted feet on the floor frame by frame; constant: one vertical offset."""
+    plant_feet: bool = True
+    """With stance grounding, bend a leg whose planted foot stands above the floor (and the other
+    foot) until it stands on it; --no-plant-feet keeps the legs as the file has them."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
@@ -161,8 +166,10 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
 
 
 def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, up_axis: str = "auto",
-                grounding: str = "stance", model: mujoco.MjModel | None = None) -> ReadMotion:
-    """Load any supported motion file (module docstring) as a grounded :class:`Motion` at ``fps``."""
+                grounding: str = "stance", model: mujoco.MjModel | None = None,
+                plant_feet: bool = True) -> ReadMotion:
+    """Load any supported motion file (module docstring) as a grounded :class:`Motion` at ``fps``
+    (``plant_feet``: see :attr:`crisp_gym.motion.StanceGrounding.plant`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no motion file at {path}")
@@ -172,7 +179,7 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
     if grounding not in ("stance", "constant"):
         raise ValueError(f"grounding must be 'stance' or 'constant', got {grounding!r}")
     model = model if model is not None else build_humanoid()
-    stance = StanceGrounding() if grounding == "stance" else None
+    stance = StanceGrounding(plant=plant_feet) if grounding == "stance" else None
     with reading(path, "motion file"):
         motion, fmt, axis, offset = _read_source(path, source_fps, up_axis, model, stance)
     if source_fps is not None:
@@ -206,11 +213,11 @@ def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
                 model: mujoco.MjModel) -> tuple[ReadMotion, Followability]:
     """Read ``file``, write it as clip ``name`` at ``output`` and register it; also say where
     its body cannot balance on its feet (``meta.json``'s ``followability``)."""
-    read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model)
+    read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model, args.plant_feet)
     follow = followability(read.motion)
     meta = {"name": name, "source": "import-motion", "input": str(file.resolve()), "fps": read.motion.fps,
             "source_format": read.source_format, "source_fps": read.source_fps, "up_axis": read.up_axis,
-            "grounding": args.grounding, "followability": follow.to_json()}
+            "grounding": args.grounding, "plant_feet": args.plant_feet, "followability": follow.to_json()}
     write_clip(output, [floor_box()], read.motion, meta, overwrite=args.overwrite)
     register_clip(name, output, tags=["imported", "flat"])
     return read, follow

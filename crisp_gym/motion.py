@@ -18,13 +18,13 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from scipy.ndimage import gaussian_filter1d, maximum_filter1d, minimum_filter1d
+from scipy.ndimage import distance_transform_edt, gaussian_filter1d, maximum_filter1d, minimum_filter1d
 from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation, Slerp
 
 from crisp_gym.atomic import atomic_path
 from crisp_gym.file_errors import reading
-from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT, joint_range_deg
 from crisp_gym.npz import read_npz
 
 FORMAT_VERSION = 1
@@ -44,6 +44,11 @@ def _low_pass(x: np.ndarray, sigma: float) -> np.ndarray:
 _UNDERCUT_PASSES = 5
 _STANCE_WINDOW = 0.5  # s each side: how far around a frame a planted foot's lowest height is sought
 _STANCE_LIFT = 0.05  # m: a still foot this far above that height is in the air, not planted
+_PLANT_HINGES = ("Hip_x", "Hip_y", "Knee_y")  # three hinges for the foot's three coordinates: no twist
+_PLANT_MAX_STEP = 0.05  # rad: a step's largest hinge change, where the leg's linearisation holds
+_PLANT_TOLERANCE = 2e-3  # m: a planted foot this close above its level stands on it (grounding's own error: < 1 mm)
+_PLANT_ITERATIONS = 12
+_PLANT_DAMPING = 1e-3  # m: damped least squares, for a leg near full stretch
 
 
 def _as_names(names, expected_len: int, what: str) -> tuple[str, ...]:
@@ -404,22 +409,25 @@ def local_angular_velocity_batched(quats: np.ndarray, dt: float) -> np.ndarray:
 
 def foot_sole_heights(motion: Motion, model: mujoco.MjModel) -> np.ndarray:
     """(T,) height of the lowest point of the foot geoms in each frame."""
+    return side_sole_heights(motion, model).min(axis=1)
+
+
+def side_sole_heights(motion: Motion, model: mujoco.MjModel) -> np.ndarray:
+    """(T, 2) height of the lowest point of the left / right foot's geoms (ankle and toe) in each frame."""
     motion = motion.in_humanoid_order()
     data = mujoco.MjData(model)
     adr = humanoid_qpos_adr(model)
-    foot_bodies = {model.body(name).id for name in FEET}
-    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in foot_bodies]
+    sides = ({model.body(name).id for name in FEET[:2]}, {model.body(name).id for name in FEET[2:]})
+    geoms = [[g for g in range(model.ngeom) if model.geom_bodyid[g] in side] for side in sides]
     qpos = motion.qpos()
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-    lowest = np.empty(motion.num_frames)
+    lowest = np.empty((motion.num_frames, 2))
     for k in range(motion.num_frames):
         data.qpos[adr:adr + qpos.shape[1]] = qpos[k]
         mujoco.mj_kinematics(model, data)
-        z = []
-        for g in geoms:
-            pts = data.geom_xpos[g] + (corners * model.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
-            z.append(pts[:, 2].min())
-        lowest[k] = min(z)
+        for i, side in enumerate(geoms):
+            lowest[k, i] = min((data.geom_xpos[g] + (corners * model.geom_size[g])
+                                @ data.geom_xmat[g].reshape(3, 3).T)[:, 2].min() for g in side)
     return lowest
 
 
@@ -454,14 +462,21 @@ class StanceGrounding:
             must cover a capture's own floor error: the planted feet of CMU 131_01 sit 13 cm
             lower in its crouch than in its final stand (the file's own ankle and toe joints
             do), 8-10 cm in 131_02.
+        plant: bend the legs so that a planted foot standing above the floor comes down onto it
+            (:func:`plant_feet`): each frame is grounded on its lower foot, and a capture's other
+            planted foot, its body's legs not ours, often stands 1-2 cm above the floor.
+        plant_blend: s. Over this time before and after a stance the planting correction fades
+            out, so a foot lands and lifts off without a jump.
     """
 
     stance_speed: float = 0.2
     smoothing: float = 0.05
     max_shift: float = 0.08
+    plant: bool = True
+    plant_blend: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("stance_speed", "smoothing", "max_shift"):
+        for name in ("stance_speed", "smoothing", "max_shift", "plant_blend"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"StanceGrounding.{name} must be a positive number, got {value}")
@@ -524,7 +539,91 @@ def ground_stance(motion: Motion, model: mujoco.MjModel, config: StanceGrounding
     floor = stance_floor(motion, model, config)
     offset = np.zeros((motion.num_frames, 3))
     offset[:, 2] = floor_height - floor
-    return replace(motion, root_pos=motion.root_pos + offset)
+    grounded = replace(motion, root_pos=motion.root_pos + offset)
+    return plant_feet(grounded, model, config, floor_height) if config.plant else grounded
+
+
+def plant_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = StanceGrounding(),
+               floor_height: float = 0.0) -> Motion:
+    """The motion with each planted foot that stands above the floor lowered onto it: its leg bent
+    at the hip and knee (flexion and abduction: no twist), the ankle turned back so that the foot
+    keeps its orientation and moves straight down.
+
+    Each stance (a run of planted frames) is lowered as a whole, by as much as its lowest frame
+    hovers above the floor, or above the other foot's level where that one stands higher too (a
+    frame grounded within ``max_shift`` of a drifting floor): a heel rising before toe-off keeps
+    its rise. Around a stance the correction fades out over ``config.plant_blend`` seconds. Nothing
+    is raised, no foot is taken below the floor and the pelvis does not move. A leg that cannot
+    reach (straight already) comes as close as its joint ranges let it.
+    """
+    motion = motion.in_humanoid_order()
+    planted = planted_feet(motion, model, config.stance_speed)
+    sole = side_sole_heights(motion, model)
+    frames = np.arange(motion.num_frames)
+    blend = max(config.plant_blend * motion.fps, 1.0)
+    drop = np.zeros((motion.num_frames, 2))  # how far each foot comes down (<= 0)
+    for i, on in enumerate(planted.T):
+        if not on.any():
+            continue
+        # as low as the floor, not below the other foot where that one stands too
+        level = np.where(planted[:, 1 - i], np.maximum(floor_height, sole[:, 1 - i]), floor_height)
+        # One drop per stance, by its lowest hover: a heel rising before toe-off keeps its rise.
+        stance_drop = np.zeros(motion.num_frames)
+        for run in np.split(frames[on], np.flatnonzero(np.diff(frames[on]) > 1) + 1):
+            stance_drop[run] = min(np.min(level[run] + _PLANT_TOLERANCE - sole[run, i]), 0.0)
+        weight = np.clip(1.0 - distance_transform_edt(~on) / blend, 0.0, 1.0)
+        drop[:, i] = np.maximum(weight * np.interp(frames, frames[on], stance_drop[on]), floor_height - sole[:, i])
+        drop[:, i] = np.minimum(drop[:, i], 0.0)
+    if not np.any(drop < 0.0):
+        return motion
+    dof = motion.dof_pos.copy()
+    leg = _LegSolver(model)
+    qpos = motion.qpos()
+    for k, i in zip(*np.nonzero(drop < 0.0)):
+        leg.lower(qpos[k], "LR"[i], drop[k, i])
+        dof[k] = qpos[k, 7:]
+    return replace(motion, dof_pos=dof)
+
+
+class _LegSolver:
+    """Lowers one foot of a posture by damped least squares on its hip's flexion and abduction and
+    its knee's flexion (as many hinges as the foot has coordinates), then turns the ankle back to
+    the foot's former orientation."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        self.model, self.data = model, mujoco.MjData(model)
+        self.adr = humanoid_qpos_adr(model)
+        self.jac = np.zeros((3, model.nv))
+        self.ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]])).reshape(-1, 2)
+
+    def lower(self, qpos: np.ndarray, side: str, drop: float) -> None:
+        """Change ``qpos`` (the motion's row: root then hinges) in place."""
+        m, d = self.model, self.data
+        hinges = np.array([DOF_NAMES.index(f"{side}_{name}") for name in _PLANT_HINGES])
+        dofs = np.array([m.jnt_dofadr[m.joint(DOF_NAMES[h]).id] for h in hinges])
+        ankle, knee = m.body(f"{side}_Ankle").id, m.body(f"{side}_Knee").id
+        d.qpos[self.adr:self.adr + len(qpos)] = qpos
+        mujoco.mj_kinematics(m, d)
+        target = d.xpos[ankle] + [0.0, 0.0, drop]
+        orientation = d.xmat[ankle].reshape(3, 3).copy()
+        # the joint ranges, widened to hold the posture's own angles (a retarget that was not clipped)
+        lo, hi = np.minimum(self.ranges[:, 0], qpos[7:]), np.maximum(self.ranges[:, 1], qpos[7:])
+        for _ in range(_PLANT_ITERATIONS):
+            error = target - d.xpos[ankle]
+            if np.linalg.norm(error) < 1e-5:
+                break
+            mujoco.mj_comPos(m, d)
+            mujoco.mj_jacBody(m, d, self.jac, None, ankle)
+            j = self.jac[:, dofs]
+            step = j.T @ np.linalg.solve(j @ j.T + _PLANT_DAMPING**2 * np.eye(3), error)
+            step *= min(1.0, _PLANT_MAX_STEP / np.abs(step).max())
+            qpos[7 + hinges] = np.clip(qpos[7 + hinges] + step, lo[hinges], hi[hinges])
+            d.qpos[self.adr:self.adr + len(qpos)] = qpos
+            mujoco.mj_kinematics(m, d)
+        local = d.xmat[knee].reshape(3, 3).T @ orientation  # the ankle's rotation in the shin's frame
+        ankle_hinges = np.array([DOF_NAMES.index(f"{side}_Ankle_{axis}") for axis in "xyz"])
+        angles = rotations_to_hinge_angles(local[None, None], self.ranges[ankle_hinges][None])[0, 0]
+        qpos[7 + ankle_hinges] = np.clip(angles, lo[ankle_hinges], hi[ankle_hinges])
 
 
 def low_pass_joints(motion: Motion, cutoff_hz: float, bodies: tuple[str, ...] | None = None) -> Motion:

@@ -18,7 +18,14 @@ from crisp_gym.export.motion_formats import amass_layout, beyondmimic_layout, sm
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
 from crisp_gym.import_motion import ImportMotionArgs, import_motion, read_motion
 from crisp_gym.metrics import sole_points
-from crisp_gym.motion import Motion, check_plausible, compute_kinematics, ground_stance, planted_feet
+from crisp_gym.motion import (
+    Motion,
+    check_plausible,
+    compute_kinematics,
+    ground_stance,
+    planted_feet,
+    side_sole_heights,
+)
 from crisp_gym.registry import check_clip_name, list_clips, load_clip, plain_clip_name, user_registry_path
 from crisp_gym.smpl import SMPL_TO_OURS, detect_up_axis
 
@@ -328,3 +335,23 @@ def test_protomotions_files_are_read_without_running_code(walk, model, tmp_path)
     torch.save(content, swapped)
     with pytest.raises(ValueError, match=r"conventions \(hinge order, quaternion order x y z w"):
         read_motion(swapped, model=model)
+
+
+def test_import_plants_a_hovering_foot_unless_told_not_to(model, tmp_path):
+    """Standing on the right foot with the left one held still 3-4 cm up (the leg folded at hip,
+    knee and ankle): imported, the left foot stands on the floor; with ``--no-plant-feet`` it
+    stays where it was, and ``meta.json`` says which was done."""
+    lift = 0.3
+    dof = np.zeros((45, len(DOF_NAMES)))
+    dof[:, DOF_NAMES.index("L_Hip_y")], dof[:, DOF_NAMES.index("L_Knee_y")] = -lift, 2 * lift
+    dof[:, DOF_NAMES.index("L_Ankle_y")] = -lift
+    standing = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 0.95], (45, 1)), root_quat=np.tile([1.0, 0, 0, 0], (45, 1)),
+                      dof_pos=dof)
+    path = write_motion_npz(standing, tmp_path / "stand.npz", "beyondmimic")
+    for name, flags in (("planted", []), ("as_read", ["--no-plant-feet"])):
+        assert cli.main(["import-motion", str(path), "--name", name, "-o", str(tmp_path / name), *flags]) == 0
+    planted, as_read = (load_clip(n) for n in ("planted", "as_read"))
+    assert planted.meta["plant_feet"] is True and as_read.meta["plant_feet"] is False
+    left = side_sole_heights(planted.motion, model)[:, 0]
+    assert np.all((left > -1e-3) & (left < 3e-3))
+    assert np.all(side_sole_heights(as_read.motion, model)[:, 0] > 0.03)

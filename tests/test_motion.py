@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -11,8 +13,10 @@ from crisp_gym.motion import (
     hinge_angles_to_rotations,
     level_feet,
     low_pass_joints,
+    plant_feet,
     planted_feet,
     rotations_to_hinge_angles,
+    side_sole_heights,
 )
 from tests.conftest import sway_motion
 
@@ -150,6 +154,65 @@ def test_level_feet_flattens_planted_feet_only():
     moved = compute_kinematics(level, model).body_pos - compute_kinematics(motion, model).body_pos
     toes = [BODY_NAMES.index("L_Toe"), BODY_NAMES.index("R_Toe")]
     np.testing.assert_allclose(np.delete(moved, toes, axis=1), 0.0, atol=1e-12)
+
+
+def _standing_on_the_right(lift: np.ndarray) -> Motion:
+    """Standing on the right foot while the left leg folds by ``lift`` (T,) radians at the hip and
+    knee and back at the ankle: the left foot stays level and rises (3.7 cm at 0.3 rad)."""
+    dof = np.zeros((len(lift), len(DOF_NAMES)))
+    dof[:, DOF_NAMES.index("L_Hip_y")] = -lift
+    dof[:, DOF_NAMES.index("L_Knee_y")] = 2 * lift
+    dof[:, DOF_NAMES.index("L_Ankle_y")] = -lift
+    motion = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 1.0], (len(lift), 1)),
+                    root_quat=np.tile([1.0, 0, 0, 0], (len(lift), 1)), dof_pos=dof)
+    return ground(motion, build_humanoid(), percentile=0.0)
+
+
+def test_plant_feet_brings_a_hovering_planted_foot_down():
+    """A left foot held still 3.7 cm above the floor beside the standing right one comes down onto
+    the floor: straight down (its orientation and horizontal place kept), by unbending that leg's
+    hip and knee; the right leg, the pelvis and everything else stay as they were."""
+    model = build_humanoid()
+    motion = _standing_on_the_right(np.full(30, 0.3))
+    sole = side_sole_heights(motion, model)
+    assert planted_feet(motion, model).all() and np.all(sole[:, 0] > 0.03) and np.allclose(sole[:, 1], 0.0)
+    planted = plant_feet(motion, model)
+
+    after = side_sole_heights(planted, model)
+    assert np.all((after[:, 0] >= -1e-4) & (after[:, 0] <= 3e-3))  # it leaves 2 mm alone
+    np.testing.assert_allclose(after[:, 1], 0.0, atol=1e-9)
+    foot = BODY_NAMES.index("L_Ankle")
+    before_kin, after_kin = compute_kinematics(motion, model), compute_kinematics(planted, model)
+    np.testing.assert_allclose(_body_axes(planted, model, "L_Ankle"), _body_axes(motion, model, "L_Ankle"), atol=1e-6)
+    np.testing.assert_allclose(after_kin.body_pos[:, foot, :2], before_kin.body_pos[:, foot, :2], atol=1e-4)
+    assert np.all(planted.dof_pos[:, DOF_NAMES.index("L_Knee_y")] < motion.dof_pos[:, DOF_NAMES.index("L_Knee_y")])
+    left_leg = [DOF_NAMES.index(f"L_{b}_{a}") for b in ("Hip", "Knee", "Ankle") for a in "xyz"]
+    others = np.delete(planted.dof_pos, left_leg, axis=1)
+    np.testing.assert_array_equal(others, np.delete(motion.dof_pos, left_leg, axis=1))
+    np.testing.assert_array_equal(planted.root_pos, motion.root_pos)
+
+
+def test_plant_feet_fades_out_into_the_swing_and_leaves_feet_on_the_floor_alone():
+    """The left foot hovers 3.7 cm for a second, then rises into a swing: planted frames come down,
+    the correction fades out linearly over ``plant_blend`` (0.1 s) after the stance, swing frames
+    beyond it are untouched, and a clip whose planted feet stand on the floor moves by less than
+    0.1 mm."""
+    model = build_humanoid()
+    lift = np.r_[np.full(30, 0.3), 0.3 + 0.6 * np.sin(np.linspace(0, np.pi / 2, 30)) ** 2]
+    motion = _standing_on_the_right(lift)
+    on = planted_feet(motion, model)[:, 0]
+    assert on[:25].all() and not on[40:].any()
+    planted = plant_feet(motion, model)
+    before, after = side_sole_heights(motion, model)[:, 0], side_sole_heights(planted, model)[:, 0]
+    assert np.all(after[on] <= 3e-3) and np.all(after >= -1e-4)
+    last = np.flatnonzero(on)[-1]
+    np.testing.assert_array_equal(planted.dof_pos[last + 4:], motion.dof_pos[last + 4:])  # 0.1 s at 30 fps
+    correction = after - before
+    assert np.abs(np.diff(correction)).max() <= np.abs(correction).max() / 3 + 1e-3  # fades over 3 frames
+    # the bundled walk's planted feet stand on the floor to within the 2 mm left alone (one at 2.05)
+    flat = Motion.load(Path(__file__).parents[1] / "assets" / "clips" / "flat_walk" / "motion.npz")
+    moved = compute_kinematics(plant_feet(flat, model), model).body_pos - compute_kinematics(flat, model).body_pos
+    assert np.abs(moved).max() < 1e-4
 
 
 def test_low_pass_joints_keeps_slow_motion_and_removes_flicker():
