@@ -10,7 +10,8 @@ planted foot. Target: median planted-foot height within 1 cm of the floor for ev
 what the import reports (:func:`crisp_gym.balance.followability`): the shares of frames whose centre
 of pressure lies over 10 cm outside the feet on the floor, and with no foot down under load. Every
 planted foot, not only the lowest: the shares more than 1 and 2 cm above the floor, with the legs
-bent to plant them (the default) and as read (``plant_feet=False``).
+bent to plant them (``plant_feet=True``, ``--plant-feet``) and as read (the default); the balance
+shares for both.
 
     python benchmarks/motion_import.py [FOLDER]
 """
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| file | frames | fps | up axis | import (s) | planted-foot height median, stance / constant (cm) "
           "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) "
           "| planted feet > 1 cm / > 2 cm above the floor, planted / legs as read (%) "
-          "| balance: CoP > 10 cm outside / no foot down (%) |")
+          "| balance: CoP > 10 cm outside / no foot down, as read / planted (%) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     medians, followable, floating = [], 0, []
     for file in files:
@@ -72,20 +73,21 @@ def main(argv: list[str] | None = None) -> None:
         read = read_motion(file, model=model)
         seconds = time.perf_counter() - start
         constant = read_motion(file, grounding="constant", model=model)
-        unplanted = read_motion(file, model=model, plant_feet=False).motion
-        shares = [floating_share(m, model, h) for m in (read.motion, unplanted) for h in (0.01, 0.02)]
+        planted = read_motion(file, model=model, plant_feet=True).motion
+        shares = [floating_share(m, model, h) for m in (planted, read.motion) for h in (0.01, 0.02)]
         floating.append(shares)
         h_stance, skating = planted_foot_heights(read.motion, model)
         h_constant, _ = planted_foot_heights(constant.motion, model)
         medians.append(np.median(np.abs(h_stance)))
-        follow = followability(read.motion)
+        follow, follow_planted = followability(read.motion), followability(planted)
         followable += not follow.spans
         print(f"| {file.name} | {read.motion.num_frames} | {read.source_fps:g} | {read.up_axis} | {seconds:.2f} "
               f"| {100 * np.median(h_stance):.2f} / {100 * np.median(h_constant):.2f} "
               f"| {100 * np.percentile(np.abs(h_stance), 90):.2f} / {100 * np.percentile(np.abs(h_constant), 90):.2f} "
               f"| {100 * skating:.1f} | {100 * shares[0]:.1f} / {100 * shares[1]:.1f}, "
               f"{100 * shares[2]:.1f} / {100 * shares[3]:.1f} "
-              f"| {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f} |")
+              f"| {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f}, "
+              f"{100 * follow_planted.outside:.0f} / {100 * follow_planted.unsupported:.0f} |")
     medians = np.array(medians)
     print(f"\n{len(files)} files; median |planted-foot height| per file: median {100 * np.median(medians):.2f} cm, "
           f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}; "

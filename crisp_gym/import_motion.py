@@ -24,9 +24,9 @@ parameter files that carry none); the clip is resampled to ``--fps``. The up axi
 SMPL-family files is detected unless given (:func:`crisp_gym.bvh.detect_up_axis`,
 :func:`crisp_gym.smpl.detect_up_axis`) and reported. Every import is grounded frame by frame from
 its planted feet (:func:`crisp_gym.motion.ground_stance`; captures also get their planted feet
-laid flat, :func:`crisp_gym.motion.level_feet`, and a planted foot left above the floor brought
-down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`), or by one offset with
-``--grounding constant``.
+laid flat, :func:`crisp_gym.motion.level_feet`; with ``--plant-feet`` a planted foot left above
+the floor is also brought down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`),
+or by one offset with ``--grounding constant``.
 """
 
 from __future__ import annotations
@@ -79,9 +79,9 @@ class ImportMotionArgs:
     """Up axis of BVH and SMPL-family input (auto: detected and reported)."""
     grounding: Grounding = "stance"
     """stance: planted feet on the floor frame by frame; constant: one vertical offset."""
-    plant_feet: bool = True
+    plant_feet: bool = False
     """With stance grounding, bend a leg whose planted foot stands above the floor (and the other
-    foot) until it stands on it; --no-plant-feet keeps the legs as the file has them."""
+    foot) until it stands on it (off by default: the legs as the file has them track as well)."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
@@ -167,7 +167,7 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
 
 def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, up_axis: str = "auto",
                 grounding: str = "stance", model: mujoco.MjModel | None = None,
-                plant_feet: bool = True) -> ReadMotion:
+                plant_feet: bool = False) -> ReadMotion:
     """Load any supported motion file (module docstring) as a grounded :class:`Motion` at ``fps``
     (``plant_feet``: see :attr:`crisp_gym.motion.StanceGrounding.plant`)."""
     path = Path(path)

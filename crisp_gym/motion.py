@@ -464,7 +464,9 @@ class StanceGrounding:
             do), 8-10 cm in 131_02.
         plant: bend the legs so that a planted foot standing above the floor comes down onto it
             (:func:`plant_feet`): each frame is grounded on its lower foot, and a capture's other
-            planted foot, its body's legs not ours, often stands 1-2 cm above the floor.
+            planted foot, its body's legs not ours, often stands 1-2 cm above the floor. Off by
+            default: a reference planted this way was no easier to track (one video motion
+            learned more slowly with it; ``docs/training.md``).
         plant_blend: s. Over this time before and after a stance the planting correction fades
             out, so a foot lands and lifts off without a jump.
     """
@@ -472,7 +474,7 @@ class StanceGrounding:
     stance_speed: float = 0.2
     smoothing: float = 0.05
     max_shift: float = 0.08
-    plant: bool = True
+    plant: bool = False
     plant_blend: float = 0.1
 
     def __post_init__(self) -> None:

@@ -585,13 +585,11 @@ def _cmu_path(name: str) -> Path:
 
 @pytest.fixture(scope="module")
 def cmu(model):
-    """131_01 retargeted, and without clipping into the joint ranges, low-passing the hands or
-    bending the legs to plant the feet."""
+    """131_01 retargeted, and without clipping into the joint ranges or low-passing the hands."""
     path = _cmu_path("131_01")
     clip = parse_bvh(path)
     return (path, clip, model, retarget_bvh(clip, model=model),
-            retarget_bvh(clip, clip_to_range=False, model=model, low_pass_hz=None,
-                         grounding=StanceGrounding(plant=False)))
+            retarget_bvh(clip, clip_to_range=False, model=model, low_pass_hz=None))
 
 
 @pytest.fixture(scope="module", params=CMU_CLIPS)
@@ -681,19 +679,18 @@ def test_cmu_clip_plays_continuously(cmu):
 
 def test_cmu_clip_planted_feet_both_stand_on_the_floor(cmu_clip, model):
     """Each frame is grounded on its lower foot; the other planted foot, on our leg proportions up
-    to 5 cm above the floor in the file (over 2 cm in 1.6-12 % of the planted feet), comes down: over
-    2 cm in at most 1 % of them and at most half as often as with the legs as captured, none below
-    the floor, the pelvis where it was."""
+    to 5 cm above the floor in the file (over 2 cm in 1.6-12 % of the planted feet), comes down with
+    ``plant``: over 2 cm in at most 1 % of them and at most half as often as with the legs as
+    captured, none below the floor, the pelvis where it was."""
     path, clip, result = cmu_clip
-    unplanted = retarget_bvh(clip, model=model, grounding=StanceGrounding(plant=False)).motion
+    planted = retarget_bvh(clip, model=model, grounding=StanceGrounding(plant=True)).motion
     shares = []
-    for motion in (result.motion, unplanted):
-        planted = planted_feet(motion, model)
-        height = side_sole_heights(motion, model)[planted]
+    for motion in (planted, result.motion):
+        height = side_sole_heights(motion, model)[planted_feet(motion, model)]
         assert height.min() > -1e-3
         shares.append(np.mean(height > 0.02))
     assert shares[0] <= 0.01 and shares[0] <= shares[1] / 2
-    np.testing.assert_allclose(result.motion.root_pos, unplanted.root_pos)
+    np.testing.assert_allclose(planted.root_pos, result.motion.root_pos)
 
 
 def test_cmu_clip_bone_directions_match(cmu):

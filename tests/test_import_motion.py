@@ -337,10 +337,10 @@ def test_protomotions_files_are_read_without_running_code(walk, model, tmp_path)
         read_motion(swapped, model=model)
 
 
-def test_import_plants_a_hovering_foot_unless_told_not_to(model, tmp_path):
+def test_import_plants_a_hovering_foot_when_told_to(model, tmp_path):
     """Standing on the right foot with the left one held still 3-4 cm up (the leg folded at hip,
-    knee and ankle): imported, the left foot stands on the floor; with ``--no-plant-feet`` it
-    stays where it was, and ``meta.json`` says which was done."""
+    knee and ankle): imported with ``--plant-feet``, the left foot stands on the floor; by default
+    it stays where it was, and ``meta.json`` says which was done."""
     lift = 0.3
     dof = np.zeros((45, len(DOF_NAMES)))
     dof[:, DOF_NAMES.index("L_Hip_y")], dof[:, DOF_NAMES.index("L_Knee_y")] = -lift, 2 * lift
@@ -348,7 +348,7 @@ def test_import_plants_a_hovering_foot_unless_told_not_to(model, tmp_path):
     standing = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 0.95], (45, 1)), root_quat=np.tile([1.0, 0, 0, 0], (45, 1)),
                       dof_pos=dof)
     path = write_motion_npz(standing, tmp_path / "stand.npz", "beyondmimic")
-    for name, flags in (("planted", []), ("as_read", ["--no-plant-feet"])):
+    for name, flags in (("planted", ["--plant-feet"]), ("as_read", [])):
         assert cli.main(["import-motion", str(path), "--name", name, "-o", str(tmp_path / name), *flags]) == 0
     planted, as_read = (load_clip(n) for n in ("planted", "as_read"))
     assert planted.meta["plant_feet"] is True and as_read.meta["plant_feet"] is False
