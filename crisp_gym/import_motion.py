@@ -80,8 +80,8 @@ class ImportMotionArgs:
     grounding: Grounding = "stance"
     """stance: planted feet on the floor frame by frame; constant: one vertical offset."""
     plant_feet: bool = False
-    """With stance grounding, bend a leg whose planted foot stands above the floor (and the other
-    foot) until it stands on it (off by default: the legs as the file has them track as well)."""
+    """With stance grounding, bend a leg whose planted foot stands above the floor (and above the
+    other planted foot) until it stands on it (off by default: the legs as read track as well)."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
