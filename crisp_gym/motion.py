@@ -466,7 +466,7 @@ class StanceGrounding:
             (:func:`plant_feet`): each frame is grounded on its lower foot, and a capture's other
             planted foot, its body's legs not ours, often stands 1-2 cm above the floor. Off by
             default: a reference planted this way was no easier to track (a video motion learned
-            more slowly with it; ``docs/motion_import.md``).
+            more slowly with it in two of three seeds; ``docs/motion_import.md``).
         plant_blend: s. Over this time before and after a stance the planting correction fades
             out, so a foot lands and lifts off without a jump.
     """
