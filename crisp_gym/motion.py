@@ -578,13 +578,11 @@ def plant_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = 
         drop[:, i] = np.minimum(drop[:, i], 0.0)
     if not np.any(drop < 0.0):
         return motion
-    dof = motion.dof_pos.copy()
     leg = _LegSolver(model)
-    qpos = motion.qpos()
+    qpos = motion.qpos()  # a fresh array: the rows are changed in place
     for k, i in zip(*np.nonzero(drop < 0.0)):
         leg.lower(qpos[k], "LR"[i], drop[k, i])
-        dof[k] = qpos[k, 7:]
-    return replace(motion, dof_pos=dof)
+    return replace(motion, dof_pos=qpos[:, 7:])
 
 
 class _LegSolver:
@@ -597,12 +595,16 @@ class _LegSolver:
         self.adr = humanoid_qpos_adr(model)
         self.jac = np.zeros((3, model.nv))
         self.ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]])).reshape(-1, 2)
+        # per side: the solved hinges (columns of the motion's hinges), their dofs, the ankle's hinges
+        self.hinges = {s: np.array([DOF_NAMES.index(f"{s}_{name}") for name in _PLANT_HINGES]) for s in "LR"}
+        self.dofs = {s: np.array([model.jnt_dofadr[model.joint(DOF_NAMES[h]).id] for h in self.hinges[s]])
+                     for s in "LR"}
+        self.ankle_hinges = {s: np.array([DOF_NAMES.index(f"{s}_Ankle_{axis}") for axis in "xyz"]) for s in "LR"}
 
     def lower(self, qpos: np.ndarray, side: str, drop: float) -> None:
         """Change ``qpos`` (the motion's row: root then hinges) in place."""
         m, d = self.model, self.data
-        hinges = np.array([DOF_NAMES.index(f"{side}_{name}") for name in _PLANT_HINGES])
-        dofs = np.array([m.jnt_dofadr[m.joint(DOF_NAMES[h]).id] for h in hinges])
+        hinges, dofs, ankle_hinges = self.hinges[side], self.dofs[side], self.ankle_hinges[side]
         ankle, knee = m.body(f"{side}_Ankle").id, m.body(f"{side}_Knee").id
         d.qpos[self.adr:self.adr + len(qpos)] = qpos
         mujoco.mj_kinematics(m, d)
@@ -623,7 +625,6 @@ class _LegSolver:
             d.qpos[self.adr:self.adr + len(qpos)] = qpos
             mujoco.mj_kinematics(m, d)
         local = d.xmat[knee].reshape(3, 3).T @ orientation  # the ankle's rotation in the shin's frame
-        ankle_hinges = np.array([DOF_NAMES.index(f"{side}_Ankle_{axis}") for axis in "xyz"])
         angles = rotations_to_hinge_angles(local[None, None], self.ranges[ankle_hinges][None])[0, 0]
         qpos[7 + ankle_hinges] = np.clip(angles, lo[ankle_hinges], hi[ankle_hinges])
 
