@@ -88,7 +88,10 @@ def build_servo_pendulum_spec(config: ServoConfig | None = None) -> mujoco.MjSpe
     body.add_joint(name=SERVO_JOINT, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0], armature=cfg.armature)
     body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.02, 0, 0], pos=[0, 0, -cfg.length], mass=cfg.mass,
                   contype=0, conaffinity=0)
-    add_position_servo(spec, SERVO_JOINT, cfg.stiffness, cfg.back_emf_damping, cfg.torque_limit, name=SERVO_ACTUATOR)
+    # The firmware clips the PWM duty cycle, i.e. the voltage: the back-EMF still brakes a servo
+    # at full duty, so its damping acts outside the torque clamp.
+    add_position_servo(spec, SERVO_JOINT, cfg.stiffness, cfg.back_emf_damping, cfg.torque_limit, name=SERVO_ACTUATOR,
+                       passive_damping=True)
     return spec
 
 

@@ -90,6 +90,7 @@ class Trajectory:
                 if not on:
                     off.actuator_gainprm[a] = 0.0
                     off.actuator_biasprm[a] = 0.0
+                    off.actuator_damping[a] = 0.0  # an open circuit: no back-EMF either
             self._variants[key] = (base, off)  # keep base alive so its id stays unique
         return self._variants[key][1]
 

@@ -156,7 +156,7 @@ def _plots(result: Diagnosis, out: Path) -> list[str]:
         t = rp.dt * np.arange(1, n + 1)
         ax.plot(t, rp.target[k, :n, j], "k", label="real")
         ax.plot(t, rp.pred_before[k, :n, j], "C3--", label="sim before")
-        ax.plot(t, rp.pred_after[k, :n, j], "C2", label=f"sim + {sel['family']}" if sel else "sim after")
+        ax.plot(t, rp.pred_after[k, :n, j], "C2", label=f"sim + {sel['effect']}" if sel else "sim after")
         ax.set_xlabel("time in window (s)")
         ax.set_title(f"{names[j]}, window {k}", fontsize=9)
     axes[0][0].set_ylabel("position (rad)")

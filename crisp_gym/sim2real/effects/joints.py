@@ -87,6 +87,7 @@ class GainScale(Effect):
             for a in acts:
                 model.actuator_gainprm[a, 0] *= s
                 model.actuator_biasprm[a, 1:3] *= s
+                model.actuator_damping[a] *= s
 
 
 class TorqueSaturation(Effect):

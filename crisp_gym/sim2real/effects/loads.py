@@ -167,8 +167,9 @@ def lever_scale(tr: Trajectory) -> np.ndarray:
 def actuator_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, ctrl: np.ndarray, enabled: np.ndarray,
                     qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
     """(k, len(cols)) torque the joint actuators apply to each target joint at the given
-    states: the affine actuator law (gain x ctrl + bias), clamped to its force range, zero
-    where the actuator is off. This is the torque the gear train transmits."""
+    states: the affine actuator law (gain x ctrl + bias), clamped to its force range, minus the
+    actuator's passive damping (a motor's back-EMF where the drive clips its voltage), zero where
+    the actuator is off. This is the torque the gear train transmits."""
     out = np.zeros((len(ctrl), len(cols)))
     for i, (c, acts) in enumerate(zip(cols, joint_actuators(tr, cols))):
         for a in acts:
@@ -177,6 +178,7 @@ def actuator_torque(model: mujoco.MjModel, tr: Trajectory, cols: np.ndarray, ctr
                      + model.actuator_biasprm[a, 1] * gear * qpos[:, c] + model.actuator_biasprm[a, 2] * gear * qvel[:, c])
             if model.actuator_forcelimited[a]:
                 force = np.clip(force, *model.actuator_forcerange[a])
+            force -= model.actuator_damping[a] * gear * qvel[:, c]  # passive damping, outside the clamp
             out[:, i] += gear * force * enabled[:, a]
     return out
 
