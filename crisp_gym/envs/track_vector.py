@@ -33,6 +33,10 @@ from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
 from crisp_gym.render import EnvDisplay
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force", "qfrc_damper")
+# What a new episode writes besides qpos, qvel and ctrl: the rest of MuJoCo's integration state
+# and the applied forces, all zero after mj_resetData (the env moves no mocap body, and its
+# composed models have no plugins).
+_RESET_FIELDS = ("time", "act", "qacc_warmstart", "qfrc_applied", "xfrc_applied")
 
 
 class CrispTrackVectorEnv(VectorEnv):
@@ -84,7 +88,7 @@ class CrispTrackVectorEnv(VectorEnv):
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode, "render_fps": self.config.control_hz}
         self._needs_reset = np.zeros(num_envs, dtype=bool)  # NEXT_STEP: finished on the previous step
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
-        self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS}
+        self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS + _RESET_FIELDS}
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -103,7 +107,10 @@ class CrispTrackVectorEnv(VectorEnv):
 
     def _reset_sims(self, ids: np.ndarray, clips: np.ndarray, frames: np.ndarray) -> None:
         qpos, qvel, ctrl = self.task.reset_state(clips, frames)
-        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        # The state written field by field: mj_resetData would clear each simulation's whole
+        # MjData, its arena included, which made up most of a reset's time after a step.
+        for name in _RESET_FIELDS:
+            self._fields[name][ids] = 0.0
         self._fields["qpos"][ids] = qpos
         self._fields["qvel"][ids] = qvel
         self._fields["ctrl"][ids] = ctrl
