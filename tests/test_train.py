@@ -597,6 +597,48 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
     assert load_checkpoint(out)["iteration"] == int(rows[-1]["iteration"]) >= 3
 
 
+def test_a_stop_signal_during_an_update_lands_after_its_log_row(clip_dir: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A signal that arrives mid-update stops the run after that iteration's row: the checkpoint's
+    iteration is the last row of ``progress.csv``, so a resumed log has no hole."""
+    import os
+    import signal
+
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train import ppo
+
+    update, calls = ppo.ppo_update, []
+
+    def update_then_signal(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return update(*args, **kwargs)
+    monkeypatch.setattr(ppo, "ppo_update", update_then_signal)
+    result = ppo.train(_tiny_config(clip_dir, tmp_path, num_envs=2, frames=10**6, checkpoint_every=100))
+    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    # iteration 1 only initialises the observation statistics: the third update is iteration 4's
+    assert result.interrupted and result.iteration == 4
+    assert load_checkpoint(tmp_path)["iteration"] == int(rows[-1]["iteration"]) == 4
+
+
+def test_a_second_stop_signal_stops_at_once() -> None:
+    import os
+    import signal
+
+    from crisp_gym.train.ppo import StopSignals
+
+    reached = []
+    with StopSignals() as stop, pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        with stop.deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("after the first")
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("after the second")
+    assert reached == ["after the first"]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
 def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path, tmp_path: Path) -> None:
     from crisp_gym.policy.files import load_checkpoint
     from crisp_gym.train.ppo import train

@@ -168,26 +168,48 @@ class TrainResult:
     reached_success: bool = False
 
 
-@contextlib.contextmanager
-def _stop_signals_interrupt() -> Iterator[None]:
+class StopSignals:
     """SIGINT and SIGTERM end training like Ctrl-C, with a checkpoint.
 
     A job started in the background (``nohup crisp train ... &``) ignores SIGINT, and schedulers
     and sessions stop jobs with SIGTERM; both would otherwise lose the work since the last
     periodic checkpoint. Only the main thread can install handlers; elsewhere this does nothing.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
 
-    def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
+    Inside :meth:`deferred` a signal is held until the block ends, so that an iteration's update,
+    its counters and its ``progress.csv`` row land together; a second signal stops at once.
+    """
+
+    def __init__(self) -> None:
+        self._previous: dict[int, Any] = {}
+        self._deferring = False
+        self._pending: str | None = None
+
+    def __enter__(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
             signal.signal(sig, handler)
+
+    def _interrupt(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self._deferring and self._pending is None:
+            self._pending = name
+            print(f"{name}: stopping after this iteration (again to stop at once)", file=sys.stderr)
+            return
+        raise KeyboardInterrupt(name)
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        self._deferring = True
+        try:
+            yield
+        finally:
+            self._deferring = False
+        if self._pending is not None:
+            raise KeyboardInterrupt(self._pending)
 
 
 def actor_lr_at(iteration: int, start: int, ramp: int, lr: float) -> float:
@@ -353,7 +375,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     if cfg.eval_every:
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
                                        num_threads=cfg.num_threads, velocity_feedforward=cfg.velocity_feedforward)
-    logger = RunLogger(out, append=cfg.resume, iteration=iteration, extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
+    logger = RunLogger(out, append=cfg.resume, iteration=iteration,
+                       extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
                        kinds=cfg.loggers)
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}
@@ -363,7 +386,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     stack = contextlib.ExitStack()
     interrupted = stopped_early = False
     try:
-        stack.enter_context(_stop_signals_interrupt())
+        stop_signals = stack.enter_context(StopSignals())
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
@@ -374,54 +397,56 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             collect_s = time.perf_counter() - collect_start
             env_s = env.env_time - env_before
 
-            update_start = time.perf_counter()
-            if iteration == 0 and cfg.normalize_obs and warm is None:
-                # The first batch only initialises the observation statistics: updating the
-                # actor on raw (unnormalised) inputs would take oversized first steps. A warm
-                # start brings its statistics.
-                losses = {}
-            else:
-                with torch.no_grad():
-                    estimate_values(data, agent.value)
-                    gae(data)
-                if ramp:
-                    optimizer.param_groups[0]["lr"] = actor_lr_at(iteration, critic_only_until, ramp, cfg.actor_lr)
-                losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator,
-                                    train_actor=iteration >= critic_only_until)
-            agent.normalizer.update(data["proprio"], data["targets"])
-            collector.update_policy_weights_()
-            update_s = time.perf_counter() - update_start
+            with stop_signals.deferred():  # the update, the counters and the row land together
+                update_start = time.perf_counter()
+                if iteration == 0 and cfg.normalize_obs and warm is None:
+                    # The first batch only initialises the observation statistics: updating the
+                    # actor on raw (unnormalised) inputs would take oversized first steps. A warm
+                    # start brings its statistics.
+                    losses = {}
+                else:
+                    with torch.no_grad():
+                        estimate_values(data, agent.value)
+                        gae(data)
+                    if ramp:
+                        optimizer.param_groups[0]["lr"] = actor_lr_at(iteration, critic_only_until, ramp, cfg.actor_lr)
+                    losses = ppo_update(data.reshape(-1), loss_module, optimizer, agent, cfg, generator,
+                                        train_actor=iteration >= critic_only_until)
+                agent.normalizer.update(data["proprio"], data["targets"])
+                collector.update_policy_weights_()
+                update_s = time.perf_counter() - update_start
 
-            iteration += 1
-            frames += data.numel()
-            stats = episode_stats(data)
-            if stats["episodes"]:
-                last_episodes = stats
-            row = {"iteration": iteration, "frames": frames, "time_s": time.perf_counter() - start_time,
-                   "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
-                   "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
-            sampling = sampler.stats()
-            row.update({f"start_failures/{name}": float(mass)
-                        for name, mass in zip(clip_names, sampling["failure_mass"])})
-            row.update({f"clip_probability/{name}": float(p)
-                        for name, p in zip(clip_names, sampling["clip_probability"])})
-            reached = False
-            if evaluation is not None and iteration % cfg.eval_every == 0:
-                results = evaluation(torch_policy(agent.actor, cfg.scene_aware, device))
-                row.update(evaluation_row(results))
-                reached = cfg.until_success is not None and all(
-                    r["success"] >= cfg.until_success and r["whole_clip"] for r in results.values())
-                score = evaluation_score(results)
-                if score > best_score:  # evaluations swing by tens of points: keep the best weights
-                    best_score = score
-                    save_checkpoint(out / BEST_NAME, agent, optimizer, iteration, frames, cfg, generator,
-                                    sampler.failures, evaluation_score=score)
-            history.append(row)
-            logger.log(row)
+                iteration += 1
+                frames += data.numel()
+                stats = episode_stats(data)
+                if stats["episodes"]:
+                    last_episodes = stats
+                row = {"iteration": iteration, "frames": frames, "time_s": time.perf_counter() - start_time,
+                       "fps": data.numel() / (collect_s + update_s), "collect_s": collect_s, "env_s": env_s,
+                       "update_s": update_s, **losses, **last_episodes, "episodes": stats["episodes"]}
+                sampling = sampler.stats()
+                row.update({f"start_failures/{name}": float(mass)
+                            for name, mass in zip(clip_names, sampling["failure_mass"])})
+                row.update({f"clip_probability/{name}": float(p)
+                            for name, p in zip(clip_names, sampling["clip_probability"])})
+                reached = False
+                if evaluation is not None and iteration % cfg.eval_every == 0:
+                    results = evaluation(torch_policy(agent.actor, cfg.scene_aware, device))
+                    row.update(evaluation_row(results))
+                    reached = cfg.until_success is not None and all(
+                        r["success"] >= cfg.until_success and r["whole_clip"] for r in results.values())
+                    score = evaluation_score(results)
+                    if score > best_score:  # evaluations swing by tens of points: keep the best weights
+                        best_score = score
+                        save_checkpoint(out / BEST_NAME, agent, optimizer, iteration, frames, cfg, generator,
+                                        sampler.failures, evaluation_score=score)
+                history.append(row)
+                logger.log(row)
             if evaluation is not None and iteration % cfg.eval_every == 0:
                 from crisp_gym.train.plots import plot_evaluations
 
-                plot_evaluations(logger.path, out / "evaluation.png", dict(zip(evaluation.names, evaluation.num_frames)))
+                plot_evaluations(logger.path, out / "evaluation.png",
+                                 dict(zip(evaluation.names, evaluation.num_frames)))
             bar.update(data.numel())
             bar.set_postfix(fps=f"{row['fps']:.0f}", ret=f"{last_episodes.get('mean_return', math.nan):.1f}",
                             len=f"{last_episodes.get('mean_length', math.nan):.0f}",
