@@ -628,7 +628,7 @@ def test_a_second_stop_signal_stops_at_once() -> None:
 
     from crisp_gym.train.ppo import StopSignals
 
-    reached = []
+    reached, before = [], signal.getsignal(signal.SIGTERM)
     with StopSignals() as stop, pytest.raises(KeyboardInterrupt, match="SIGTERM"):
         with stop.deferred():
             os.kill(os.getpid(), signal.SIGTERM)
@@ -636,7 +636,7 @@ def test_a_second_stop_signal_stops_at_once() -> None:
             os.kill(os.getpid(), signal.SIGTERM)
             reached.append("after the second")
     assert reached == ["after the first"]
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 def test_resume_keeps_the_adaptive_start_samplers_failure_counts(clip_dir: Path, tmp_path: Path) -> None:
