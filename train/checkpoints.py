@@ -100,6 +100,12 @@ def evaluation_score(results: dict[str, dict[str, float]]) -> float:
     return float(sum(r["success"] + r["frames"] / r["num_frames"] for r in results.values()) / len(results))
 
 
+def evaluation_meets(results: dict[str, dict[str, float]], success: float) -> bool:
+    """The stop rule: every clip at ``success`` or more from RSI starts and tracked from frame 0
+    to its end."""
+    return all(r["success"] >= success and r["whole_clip"] for r in results.values())
+
+
 def evaluation_score_of(checkpoint: dict[str, Any]) -> float:
     """:func:`evaluation_score` of the evaluation a checkpoint was saved at (from its run's log)."""
     return float(checkpoint.get("evaluation_score", -math.inf))

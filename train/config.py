@@ -72,6 +72,10 @@ class TrainConfig:
         eval_episodes: RSI episodes per clip in each evaluation (plus one from frame 0).
         until_success: stop once an evaluation finds every clip at this RSI success or more,
             and tracked from frame 0 to the end (None: train for frames).
+        confirm_episodes: with until_success, an evaluation that meets it is repeated from this
+            many other RSI starts per clip (another draw), and the run stops only if that one
+            meets it too: a rule checked on a few starts at every evaluation passes by chance
+            sooner or later. 0: no confirmation.
         init_from: warm start: a policy file, run directory or checkpoint whose actor (and,
             from a checkpoint, critic) weights and observation statistics start this run. Its
             architecture must match this run's.
@@ -133,6 +137,7 @@ class TrainConfig:
     eval_every: int = 0
     eval_episodes: int = 32
     until_success: float | None = None
+    confirm_episodes: int = 100
     init_from: Path | None = None
     init_stats_samples: int | None = None
     critic_warmup: int = 20
@@ -160,8 +165,8 @@ class TrainConfig:
             raise ValueError(f"critic_loss must be 'l2' or 'smooth_l1', got {self.critic_loss!r}")
         if self.init_stats_samples is not None and self.init_stats_samples < 1:
             raise ValueError(f"init_stats_samples must be at least 1, got {self.init_stats_samples}")
-        if self.eval_every < 0 or self.critic_warmup < 0 or self.actor_lr_warmup < 0:
-            raise ValueError("eval_every, critic_warmup and actor_lr_warmup must be non-negative")
+        if min(self.eval_every, self.confirm_episodes, self.critic_warmup, self.actor_lr_warmup) < 0:
+            raise ValueError("eval_every, confirm_episodes, critic_warmup and actor_lr_warmup must be non-negative")
         if self.until_success is not None and not (0 < self.until_success <= 1 and self.eval_every > 0):
             raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
         if self.ray_workers < 0 or (self.ray_address is not None and not self.ray_workers):

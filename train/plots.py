@@ -41,7 +41,8 @@ def plot_tracking(rollout: Rollout, path: Path, title: str = "") -> None:
 
 def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]) -> None:
     """The periodic evaluations of a run (``progress.csv``): per clip (name → frames), success
-    from RSI starts and the share of the clip tracked from frame 0, against training frames."""
+    from RSI starts (rings: the stop rule's confirmations on other starts) and the share of the
+    clip tracked from frame 0, against training frames."""
     import csv
 
     import matplotlib
@@ -56,7 +57,11 @@ def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]
     frames = np.array([float(r["frames"]) for r in rows]) / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for name, num_frames in clip_frames.items():
-        ax1.plot(frames, [float(r[f"eval_success/{name}"]) for r in rows], marker=".", label=name)
+        line, = ax1.plot(frames, [float(r[f"eval_success/{name}"]) for r in rows], marker=".", label=name)
+        confirmed = [(x, float(r[f"confirm_success/{name}"])) for x, r in zip(frames, rows)
+                     if r.get(f"confirm_success/{name}")]
+        if confirmed:  # the stop rule's confirmations on other starts, as rings
+            ax1.scatter(*zip(*confirmed), s=40, facecolors="none", edgecolors=line.get_color())
         tracked = np.array([float(r[f"eval_frames/{name}"]) for r in rows])
         ax2.plot(frames, tracked / (num_frames - 1), marker=".", label=name)
     ax1.set_ylabel("success from RSI starts")

@@ -52,10 +52,11 @@ from tqdm.auto import tqdm
 from crisp_gym.atomic import write_text
 from crisp_gym.policy.files import BEST_NAME, CHECKPOINT_NAME, load_checkpoint, read_policy_source
 from crisp_gym.policy.networks import Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
-from crisp_gym.train.checkpoints import check_resumable, evaluation_score, evaluation_score_of, save_checkpoint
+from crisp_gym.train.checkpoints import (check_resumable, evaluation_meets, evaluation_score, evaluation_score_of,
+                                         save_checkpoint)
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict
 from crisp_gym.train.rollouts import LibraryEvaluation, single_cpu_thread, torch_policy
-from crisp_gym.train.run_log import RunLogger, clip_fields, evaluation_row
+from crisp_gym.train.run_log import RunLogger, clip_fields, confirmation_row, evaluation_row
 
 
 @dataclass
@@ -371,12 +372,14 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         restored = [f.numpy().copy() for f in saved["start_failures"]]
         if [f.shape for f in restored] == [f.shape for f in sampler.failures]:
             sampler.failures = restored
-    evaluation = None
+    evaluation = confirmation = None
+    evaluation_env = dict(scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
+                          velocity_feedforward=cfg.velocity_feedforward)
     if cfg.eval_every:
-        evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, scene_aware=cfg.scene_aware, seed=cfg.seed,
-                                       num_threads=cfg.num_threads, velocity_feedforward=cfg.velocity_feedforward)
+        evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, seed=cfg.seed, **evaluation_env)
+    confirming = cfg.until_success is not None and cfg.confirm_episodes > 0
     logger = RunLogger(out, append=cfg.resume, iteration=iteration,
-                       extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
+                       extra_fields=clip_fields(clip_names, bool(cfg.eval_every), confirming),
                        kinds=cfg.loggers)
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}
@@ -431,12 +434,25 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                             for name, p in zip(clip_names, sampling["clip_probability"])})
                 reached = False
                 if evaluation is not None and iteration % cfg.eval_every == 0:
-                    results = evaluation(torch_policy(agent.actor, cfg.scene_aware, device))
+                    policy = torch_policy(agent.actor, cfg.scene_aware, device)
+                    results = evaluation(policy)
                     row.update(evaluation_row(results))
-                    reached = cfg.until_success is not None and all(
-                        r["success"] >= cfg.until_success and r["whole_clip"] for r in results.values())
+                    reached = cfg.until_success is not None and evaluation_meets(results, cfg.until_success)
+                    if reached and confirming:
+                        if confirmation is None:  # other starts than the periodic evaluation's
+                            confirmation = LibraryEvaluation(list(cfg.clip), cfg.confirm_episodes, seed=cfg.seed + 1,
+                                                             **evaluation_env)
+                        confirmed = confirmation(policy)
+                        row.update(confirmation_row(confirmed))
+                        reached = evaluation_meets(confirmed, cfg.until_success)
+                        lowest = min(r["success"] for r in confirmed.values())
+                        bar.write(f"{cfg.eval_episodes} RSI starts per clip reached {cfg.until_success:.0%}; "
+                                  f"{cfg.confirm_episodes} other starts {'confirm' if reached else 'do not'} "
+                                  f"(lowest clip {lowest:.0%})")
                     score = evaluation_score(results)
-                    if score > best_score:  # evaluations swing by tens of points: keep the best weights
+                    # Evaluations swing by tens of points: keep the best weights, or those that met
+                    # the stop rule (an earlier evaluation as good may have failed its confirmation).
+                    if score > best_score or reached:
                         best_score = score
                         save_checkpoint(out / BEST_NAME, agent, optimizer, iteration, frames, cfg, generator,
                                         sampler.failures, evaluation_score=score)
@@ -455,7 +471,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator,
                                 sampler.failures)
             if reached:
-                bar.write(f"every clip reached {cfg.until_success:.0%} success from RSI starts and the whole clip "
+                checked = f"{cfg.eval_episodes} RSI starts"
+                checked += f" and {cfg.confirm_episodes} others" if confirming else ""
+                bar.write(f"every clip reached {cfg.until_success:.0%} success from {checked} and the whole clip "
                           f"from frame 0: stopping at {frames} frames")
                 stopped_early = True
                 break
@@ -467,8 +485,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         bar.close()
         logger.close()
         collector.shutdown()
-        if evaluation is not None:
-            evaluation.close()
+        for evaluator in (evaluation, confirmation):
+            if evaluator is not None:
+                evaluator.close()
     # Only reached on completion or Ctrl-C: an error keeps the last periodic checkpoint.
     save_checkpoint(checkpoint_path, agent, optimizer, iteration, frames, cfg, generator,
                     env.vec_env.start_sampler.failures)

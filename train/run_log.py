@@ -80,15 +80,18 @@ class RunLogger:
                 writer.close()
 
 
-def clip_fields(clip_names: list[str], evaluated: bool) -> tuple[str, ...]:
+def clip_fields(clip_names: list[str], evaluated: bool, confirmed: bool = False) -> tuple[str, ...]:
     """The per-clip columns of ``progress.csv``: the adaptive sampler's failure mass, the
     probability of drawing the clip and, with periodic evaluation (``evaluated``), the
-    evaluation's success and frames from frame 0."""
+    evaluation's success and frames from frame 0; with the stop rule's confirmation
+    (``confirmed``), its success (empty in the rows without one)."""
     fields = [f"start_failures/{name}" for name in clip_names]
     fields += [f"clip_probability/{name}" for name in clip_names]
     if evaluated:
         fields += [f"eval_{kind}/{name}" for name in clip_names for kind in ("success", "frames")]
         fields += ["eval_success_min"]
+    if confirmed:
+        fields += [f"confirm_success/{name}" for name in clip_names]
     return tuple(fields)
 
 
@@ -99,3 +102,7 @@ def evaluation_row(results: dict[str, dict[str, float]]) -> dict[str, float]:
         row[f"eval_frames/{name}"] = r["frames"]
     row["eval_success_min"] = min(r["success"] for r in results.values())
     return row
+
+
+def confirmation_row(results: dict[str, dict[str, float]]) -> dict[str, float]:
+    return {f"confirm_success/{name}": r["success"] for name, r in results.items()}
