@@ -92,13 +92,37 @@ def test_a_reset_simulation_runs_exactly_as_a_fresh_one():
     fresh = CrispTrackVectorEnv(3, clip="flat_walk", num_threads=1)
     starts = {"start_frame": [0, 9, 30]}
     runs = [env.reset(seed=1, options=starts)[0] for env in (used, fresh)]
-    np.testing.assert_array_equal(runs[0]["proprio"], runs[1]["proprio"])
+    for key in runs[0]:
+        np.testing.assert_array_equal(runs[0][key], runs[1][key])
     for _ in range(15):
         actions = rng.uniform(-0.1, 0.1, (3, 69)).astype(np.float32)
         (obs_a, rew_a, *_), (obs_b, rew_b, *_) = used.step(actions), fresh.step(actions)
         for key in obs_a:
             np.testing.assert_array_equal(obs_a[key], obs_b[key])
         np.testing.assert_array_equal(rew_a, rew_b)
+
+
+@pytest.mark.parametrize("autoreset_mode", ["same_step", "next_step"])
+def test_kept_start_observations_are_what_the_reset_state_gives(sway_clip, autoreset_mode):
+    """The observation of a simulation just reset is kept per start frame and reused: it must be,
+    bit for bit, what the env's observation function gives on the reset state (scene points too)."""
+    env = CrispTrackVectorEnv(12, clip=str(sway_clip), scene_aware=True, num_threads=1,
+                              autoreset_mode=autoreset_mode)
+    rng = np.random.default_rng(3)
+    obs, _ = env.reset(seed=0)
+    starts = 12
+    for _ in range(60):  # large actions: many falls, so many resets
+        was_reset = env._needs_reset.copy()
+        obs, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, (12, 69)).astype(np.float32))
+        reset = was_reset if autoreset_mode == "next_step" else terminated | truncated
+        ids = np.flatnonzero(reset)
+        starts += len(ids)
+        if len(ids):
+            expected = env.task.observe(env._state(ids), env._clip[ids], env._frame[ids])
+            for key in obs:
+                np.testing.assert_array_equal(obs[key][ids], expected[key])
+    kept = int(env._start_obs.known.sum())
+    assert starts > 40 and kept < starts  # resets happened, and some started where one had before
 
 
 def test_make_vec_and_same_step_autoreset(sway_clip):

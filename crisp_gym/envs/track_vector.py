@@ -39,6 +39,33 @@ _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com",
 _RESET_FIELDS = ("time", "act", "qacc_warmstart", "qfrc_applied", "xfrc_applied")
 
 
+class StartObservations:
+    """The observations of simulations just reset, kept per reference row (clip and frame).
+
+    A reset writes the reference's state (and zeros the rest of the integration state) into a
+    simulation of the batch's one model, and the observation reads only positions and
+    velocities: so a start's observation is the same every time, bit for bit. Each row is
+    computed by the env's own path the first time a simulation starts there; arrays for all
+    rows are reserved up front, and the memory of a row is touched only once it is filled.
+    """
+
+    def __init__(self, spaces: dict[str, Any], num_rows: int):
+        self.table = {k: np.empty((num_rows, *space.shape), dtype=space.dtype) for k, space in spaces.items()}
+        self.known = np.zeros(num_rows, dtype=bool)
+
+    def missing(self, rows: np.ndarray) -> np.ndarray:
+        """A mask over ``rows``: those not kept yet."""
+        return ~self.known[rows]
+
+    def keep(self, rows: np.ndarray, obs: dict[str, np.ndarray]) -> None:
+        for k, v in obs.items():
+            self.table[k][rows] = v
+        self.known[rows] = True
+
+    def __getitem__(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        return {k: v[rows] for k, v in self.table.items()}
+
+
 class CrispTrackVectorEnv(VectorEnv):
     """``num_envs`` copies of :class:`~crisp_gym.envs.track.CrispTrackEnv` in one batch.
 
@@ -97,6 +124,8 @@ class CrispTrackVectorEnv(VectorEnv):
         self._frame = np.zeros(num_envs, dtype=int)
         self._start_frame = np.zeros(num_envs, dtype=int)
         self._all = np.arange(num_envs)
+        self._start_obs = StartObservations(dict(self.single_observation_space.spaces),
+                                            len(self.task.reference.qpos))
         self._scratch = mujoco.MjData(self.model)  # one simulation's state, for drawing it
         self._display = EnvDisplay(self.model, render_mode, self.config.render_width, self.config.render_height)
 
@@ -119,6 +148,17 @@ class CrispTrackVectorEnv(VectorEnv):
         self._frame[ids] = frames
         self._start_frame[ids] = frames
 
+    def _start_observation(self, ids: np.ndarray) -> dict[str, np.ndarray]:
+        """The observations of simulations ``ids``, just reset (see :class:`StartObservations`)."""
+        rows = self.task.library.global_frames(self._clip[ids], self._frame[ids])
+        new = self._start_obs.missing(rows)
+        if new.any():
+            fresh = ids[new]
+            rows_new, first = np.unique(rows[new], return_index=True)  # two starts at one frame: once
+            obs = self.task.observe(self._state(fresh[first]), self._clip[fresh[first]], self._frame[fresh[first]])
+            self._start_obs.keep(rows_new, obs)
+        return self._start_obs[rows]
+
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         super().reset(seed=seed)
         options = options or {}
@@ -132,9 +172,8 @@ class CrispTrackVectorEnv(VectorEnv):
         self.task.check_starts(clips, frames)
         self._reset_sims(self._all, clips, frames)
         self._needs_reset[:] = False
-        state = self._state()
-        obs = self.task.observe(state, self._clip, self._frame)
-        error = self.task.tracking_error(state, self._clip, self._frame)
+        obs = self._start_observation(self._all)
+        error = self.task.tracking_error(self._state(), self._clip, self._frame)
         # The same keys as a step's info (terms zero, no success yet): wrappers that read infos
         # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
         terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
@@ -187,7 +226,7 @@ class CrispTrackVectorEnv(VectorEnv):
             info["_final_obs"] = done.copy()
             info["_final_info"] = done.copy()
             self._reset_sims(ids, *self.start_sampler.sample(self.np_random, len(ids)))
-            fresh = self.task.observe(self._state(ids), self._clip[ids], self._frame[ids])
+            fresh = self._start_observation(ids)
             for k in obs:
                 obs[k][ids] = fresh[k]
         return obs, reward.astype(np.float64), terminated, truncated, info
@@ -203,8 +242,7 @@ class CrispTrackVectorEnv(VectorEnv):
         if starting.any():
             ids = np.flatnonzero(starting)
             self._reset_sims(ids, *self.start_sampler.sample(self.np_random, len(ids)))
-            state = self._state(ids)
-            fresh = self.task.observe(state, self._clip[ids], self._frame[ids])
+            fresh = self._start_observation(ids)
             for k in obs:
                 obs[k][ids] = fresh[k]
             reward[ids] = 0.0
@@ -213,7 +251,8 @@ class CrispTrackVectorEnv(VectorEnv):
                 info[f"reward_{name}"][ids] = 0.0
             info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]
             info["start_frame"][ids] = self._start_frame[ids]
-            info["max_body_error"][ids] = self.task.tracking_error(state, self._clip[ids], self._frame[ids])
+            info["max_body_error"][ids] = self.task.tracking_error(self._state(ids), self._clip[ids],
+                                                                   self._frame[ids])
         self._needs_reset = finished
         return obs, reward.astype(np.float64), terminated, truncated, info
 
