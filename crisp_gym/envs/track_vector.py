@@ -217,8 +217,9 @@ class CrispTrackVectorEnv(VectorEnv):
             self.start_sampler.record(self._clip[ids], next_frame[ids], terminated[ids])
             info["final_obs"] = np.array([None] * self.num_envs, dtype=object)
             info["final_info"] = np.array([None] * self.num_envs, dtype=object)
-            for i in ids:
-                info["final_obs"][i] = {k: v[i].copy() for k, v in obs.items()}
+            last = {k: v[ids] for k, v in obs.items()}  # copies: the reset rows of obs are overwritten below
+            for j, i in enumerate(ids):
+                info["final_obs"][i] = {k: v[j] for k, v in last.items()}
                 info["final_info"][i] = {"clip": int(self._clip[i]), "frame": int(next_frame[i]),
                                          "start_frame": int(self._start_frame[i]),
                                          "max_body_error": float(error[i]), "success": bool(truncated[i]),

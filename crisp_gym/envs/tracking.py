@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 from pathlib import Path
 
 import mujoco
@@ -143,6 +144,16 @@ class SimState:
     body_ang_vel: np.ndarray
     servo_torque: np.ndarray
 
+    @cached_property
+    def body_rot_pair(self) -> np.ndarray:
+        """(N, B, 6, 6) ``[[R, 0], [0, R]]`` of each body's rotation (:func:`quat.matrix_pair`):
+        computed once for the proprioception's axes and the target features."""
+        return quat.matrix_pair(self.body_quat)
+
+
+# The x and z axes (columns 0 and 2 of R) in a flattened body_rot_pair: R[i, j] is entry 6 i + j.
+_AXES_IN_PAIR = np.array([0, 6, 12, 2, 8, 14])
+
 
 def sim_state(qpos, qvel, xpos, xquat, cvel, subtree_com, actuator_force, qfrc_damper, body_ids) -> SimState:
     """Assemble a :class:`SimState` from MuJoCo fields (each with a leading N).
@@ -183,7 +194,8 @@ def proprioception(state: SimState) -> np.ndarray:
     n, nb = pos.shape[:2]
     rows = np.empty((n, 5 * nb, 3))  # body − root positions, x and z axes (per body), lin, ang
     np.subtract(pos, np.take(pos, np.zeros(nb, dtype=int), axis=1), out=rows[:, :nb])  # (see sim_state)
-    axes = quat.tangent_normal(state.body_quat, out=rows[:, nb:3 * nb].reshape(n, nb, 6))
+    axes = rows[:, nb:3 * nb].reshape(n, nb, 6)
+    np.take(state.body_rot_pair.reshape(n, nb, 36), _AXES_IN_PAIR, axis=2, out=axes, mode="clip")
     rows[:, 3 * nb:4 * nb] = state.body_lin_vel
     rows[:, 4 * nb:] = state.body_ang_vel
     # the heading is the yaw of the root's x axis (quat.yaw's arguments, bit for bit)
@@ -205,7 +217,7 @@ def target_features(state: SimState, ref: Reference, frames: np.ndarray) -> np.n
     nb = sim_pos.shape[1]
     rows = k * nb
     out = np.empty((n, k, nb, 18))
-    sim_rot = quat.matrix_pair(state.body_quat)  # (N, B, 6, 6) blockdiag(R, R)
+    sim_rot = state.body_rot_pair  # (N, B, 6, 6) blockdiag(R, R)
     heading = quat.inverse_yaw_matrix(np.arctan2(sim_rot[:, 0, 1, 0], sim_rot[:, 0, 0, 0]))  # root's yaw
     ref_axes = ref.body_axes[frames]  # (N, K, B, 6)
     # rel_rot: [x, z] @ blockdiag(R, R) = [Rᵀx, Rᵀz], one product per (env, body) over the K frames
