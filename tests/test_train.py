@@ -523,6 +523,28 @@ def test_warm_start_loads_the_actor_and_trains_the_critic_first(clip_dir: Path, 
     assert resumed.history[0]["kl_approx"] != 0.0  # the actor trained in the first iteration
 
 
+def test_a_warm_start_or_resume_may_change_the_exploration_noise(clip_dir: Path, tmp_path: Path) -> None:
+    """``model.action_std`` shapes no weight: a run may start from a policy trained with another σ
+    (or resume with one), keeps that policy's weights and explores with its own σ."""
+    from crisp_gym.policy.files import load_checkpoint, write_policy_file
+    from crisp_gym.train.ppo import train
+
+    source = tmp_path / "source"
+    train(_tiny_config(clip_dir, source, num_envs=4, frames=256))
+    policy = write_policy_file(source, tmp_path / "shipped")
+    wider = replace(SMALL_MLP, action_std=0.15)
+    warm = _tiny_config(clip_dir, tmp_path / "warm", num_envs=4, frames=2 * 128, init_from=policy, critic_warmup=2,
+                        model=wider)
+    train(warm)
+    original, held = load_checkpoint(source)["actor"], load_checkpoint(warm.output)["actor"]
+    assert float(original["std"]) == pytest.approx(SMALL_MLP.action_std) and float(held["std"]) == pytest.approx(0.15)
+    for key in original:
+        if key != "std" and "normalizer" not in key:
+            torch.testing.assert_close(held[key], original[key], rtol=0, atol=0, msg=key)
+    train(replace(warm, frames=3 * 128, resume=True, model=replace(wider, action_std=0.1)))
+    assert float(load_checkpoint(warm.output)["actor"]["std"]) == pytest.approx(0.1)
+
+
 def test_periodic_evaluation_is_logged_and_plotted(clip_dir: Path, tmp_path: Path) -> None:
     from crisp_gym.train.ppo import train
 

@@ -28,13 +28,17 @@ ARCHITECTURE_FIELDS = ("scene_aware", "model", "normalize_obs")
 
 _TRANSFORMER_ONLY = ("latent_dim", "ff_dim", "num_layers", "num_heads", "num_point_tokens")
 _SCENE_AWARE_ONLY = ("point_encoder", "pointnet_hidden", "num_point_tokens")
+# Model options that shape no weight: the exploration noise (set anew on every start) and the
+# spread of the initial action head (loaded weights replace it).
+_NOT_IN_WEIGHTS = ("action_std", "init_action_std")
 
 
 def architecture(cfg: TrainConfig) -> dict[str, Any]:
     """The :data:`ARCHITECTURE_FIELDS` of ``cfg`` (the model's options as ``model.<name>``) without
     the model options that build nothing in its networks: a scene-blind actor has no point
-    encoder, an MLP actor no transformer, a transformer no MLP."""
-    unused = set(_TRANSFORMER_ONLY) if cfg.model.actor == "mlp" else {"mlp_actor_hidden"}
+    encoder, an MLP actor no transformer, a transformer no MLP, and no network depends on the
+    exploration noise ``action_std`` (a warm start or a resumed run may change it)."""
+    unused = set(_NOT_IN_WEIGHTS) | (set(_TRANSFORMER_ONLY) if cfg.model.actor == "mlp" else {"mlp_actor_hidden"})
     if not cfg.scene_aware:
         unused |= set(_SCENE_AWARE_ONLY)
     out = {f"model.{k}": v for k, v in asdict(cfg.model).items() if k not in unused}

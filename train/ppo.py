@@ -309,6 +309,7 @@ def _load_start_state(agent: Agent, optimizer: torch.optim.Optimizer, generator:
             agent.critic.load_state_dict(warm["critic"])
         if cfg.init_stats_samples is not None:
             agent.normalizer.limit_count(cfg.init_stats_samples)
+    agent.actor.std.fill_(cfg.model.action_std)  # the run's exploration noise, not the loaded one
 
 
 def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = None) -> TrainResult:
