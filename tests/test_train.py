@@ -589,30 +589,34 @@ def test_until_success_stops_only_once_other_starts_confirm_it(clip_dir: Path, t
 
     met = {"success": 1.0, "frames": 89, "num_frames": 90, "whole_clip": True}
     short = {**met, "success": 0.8}
-    periodic = iter([short, met, met, met])  # the first evaluation is not confirmed at all
+    periodic = iter([short, met, met, met, met])  # the first evaluation is not confirmed at all
     confirming = iter([short, met])
     calls, starts = [], {}
 
     def scripted(self, policy):
-        starts.setdefault(id(self), self.frames.tolist())
-        confirmation = id(self) != next(iter(starts))  # the evaluator built second
+        confirmation = len(self.clips) == 7 + 1  # 7 RSI starts and frame 0
+        starts.setdefault(confirmation, self.frames.tolist())
         calls.append("confirm" if confirmation else "eval")
         return {name: next(confirming if confirmation else periodic) for name in self.names}
     monkeypatch.setattr(rollouts.LibraryEvaluation, "__call__", scripted)
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=100 * 128, eval_every=1, eval_episodes=6,
-                       until_success=0.9, confirm_episodes=6)
+                       until_success=0.9, confirm_episodes=7)
     result = train(cfg)
     assert result.reached_success and result.iteration == 3
     assert calls == ["eval", "eval", "confirm", "eval", "confirm"]
-    periodic_starts, confirmation_starts = starts.values()
+    periodic_starts, confirmation_starts = starts[False], starts[True]
     assert periodic_starts[0] == confirmation_starts[0] == 0  # both also run the clip from frame 0
-    assert periodic_starts[1:] != confirmation_starts[1:]  # other RSI starts
+    assert periodic_starts[1:] != confirmation_starts[1:7]  # other RSI starts
     rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
     assert [r[f"confirm_success/{clip_dir.name}"] for r in rows] == ["", "0.8", "1.0"]
     assert (tmp_path / "evaluation.png").is_file()  # drawn with the confirmations
     # the second evaluation scored as well as the third but failed its confirmation
     from crisp_gym.policy.files import BEST_NAME, load_checkpoint
     assert load_checkpoint(tmp_path / BEST_NAME)["iteration"] == 3
+    # resumed without the stop rule, the log keeps its columns
+    train(replace(cfg, until_success=None, frames=4 * 128, resume=True))
+    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    assert [r[f"confirm_success/{clip_dir.name}"] for r in rows] == ["", "0.8", "1.0", ""]
 
 
 def test_actor_learning_rate_ramps_up_after_the_critic_warmup() -> None:

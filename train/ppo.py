@@ -185,7 +185,7 @@ class StopSignals:
         self._deferring = False
         self._pending: str | None = None
 
-    def __enter__(self) -> "StopSignals":
+    def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
             self._previous = {sig: signal.signal(sig, self._interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
         return self
@@ -380,7 +380,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         evaluation = LibraryEvaluation(list(cfg.clip), cfg.eval_episodes, seed=cfg.seed, **evaluation_env)
     confirming = cfg.until_success is not None and cfg.confirm_episodes > 0
     logger = RunLogger(out, append=cfg.resume, iteration=iteration,
-                       extra_fields=clip_fields(clip_names, bool(cfg.eval_every), confirming),
+                       extra_fields=clip_fields(clip_names, bool(cfg.eval_every)),
                        kinds=cfg.loggers)
     history: list[dict[str, float]] = []
     last_episodes: dict[str, float] = {}

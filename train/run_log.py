@@ -80,17 +80,17 @@ class RunLogger:
                 writer.close()
 
 
-def clip_fields(clip_names: list[str], evaluated: bool, confirmed: bool = False) -> tuple[str, ...]:
+def clip_fields(clip_names: list[str], evaluated: bool) -> tuple[str, ...]:
     """The per-clip columns of ``progress.csv``: the adaptive sampler's failure mass, the
     probability of drawing the clip and, with periodic evaluation (``evaluated``), the
-    evaluation's success and frames from frame 0; with the stop rule's confirmation
-    (``confirmed``), its success (empty in the rows without one)."""
+    evaluation's success and frames from frame 0 and the success of the stop rule's
+    confirmation (empty in the rows without one; there whether or not the run confirms, so that
+    a run resumed with other stop options keeps its columns)."""
     fields = [f"start_failures/{name}" for name in clip_names]
     fields += [f"clip_probability/{name}" for name in clip_names]
     if evaluated:
         fields += [f"eval_{kind}/{name}" for name in clip_names for kind in ("success", "frames")]
         fields += ["eval_success_min"]
-    if confirmed:
         fields += [f"confirm_success/{name}" for name in clip_names]
     return tuple(fields)
 
