@@ -56,14 +56,18 @@ def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]
         return
     frames = np.array([float(r["frames"]) for r in rows]) / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    any_confirmed = False
     for name, num_frames in clip_frames.items():
         line, = ax1.plot(frames, [float(r[f"eval_success/{name}"]) for r in rows], marker=".", label=name)
         confirmed = [(x, float(r[f"confirm_success/{name}"])) for x, r in zip(frames, rows)
                      if r.get(f"confirm_success/{name}")]
         if confirmed:  # the stop rule's confirmations on other starts, as rings
             ax1.scatter(*zip(*confirmed), s=40, facecolors="none", edgecolors=line.get_color())
+            any_confirmed = True
         tracked = np.array([float(r[f"eval_frames/{name}"]) for r in rows])
         ax2.plot(frames, tracked / (num_frames - 1), marker=".", label=name)
+    if any_confirmed:  # one legend entry for every clip's rings
+        ax1.scatter([], [], s=40, facecolors="none", edgecolors="grey", label="confirmation (other starts)")
     ax1.set_ylabel("success from RSI starts")
     ax1.set_ylim(0, 1.02)
     ax1.set_title("deterministic evaluation (mean action)")
