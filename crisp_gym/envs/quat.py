@@ -38,15 +38,10 @@ _PAIR_COEF[:, 0, :, 0, :] = _PAIR_COEF[:, 1, :, 1, :] = _MATRIX_COEF.reshape(11,
 _PAIR_COEF = _PAIR_COEF.reshape(11, 36)
 
 
-def _linear_in_products(q: np.ndarray, coef: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """(..., K) ``[ww wx wy wz xx xy xz yy yz zz 1] @ coef`` for quaternions q (..., 4).
-
-    ``out``, if given, receives the result; a block of columns of a wider array works (one
-    BLAS call per leading index when it cannot be flattened to rows).
-    """
+def _linear_in_products(q: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """(..., K) ``[ww wx wy wz xx xy xz yy yz zz 1] @ coef`` for quaternions q (..., 4)."""
     q = np.asarray(q)
     dtype = np.result_type(q, 1.0)
-    lead = q.shape[:-1]
     comp = np.ascontiguousarray(q.reshape(-1, 4).T, dtype=dtype)  # (4, M): components as rows
     products = np.empty((11, comp.shape[1]), dtype=dtype)
     np.multiply(comp[0], comp, out=products[0:4])
@@ -54,18 +49,8 @@ def _linear_in_products(q: np.ndarray, coef: np.ndarray, out: np.ndarray | None 
     np.multiply(comp[2], comp[2:], out=products[7:9])
     np.multiply(comp[3], comp[3], out=products[9])
     products[10] = 1.0
-    coef = coef.astype(dtype, copy=False)
-    shape = (*lead, coef.shape[1])
-    if out is None:
-        out = np.empty(shape, dtype=dtype)
-    elif out.shape != shape:
-        raise ValueError(f"out has shape {out.shape}, expected {shape}")
-    flat = out.reshape(-1, coef.shape[1])
-    if np.may_share_memory(flat, out):  # flattened in place: one BLAS call
-        np.matmul(products.T, coef, out=flat)
-    else:
-        np.matmul(products.T.reshape(*lead, 11), coef, out=out)
-    return out
+    out = products.T @ coef.astype(dtype, copy=False)  # one BLAS call
+    return out.reshape(*q.shape[:-1], coef.shape[1])
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
@@ -141,9 +126,6 @@ def matrix_pair(q: np.ndarray) -> np.ndarray:
     return _linear_in_products(q, _PAIR_COEF).reshape(*np.shape(q)[:-1], 6, 6)
 
 
-def tangent_normal(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """(..., 6) continuous rotation features: the rotated x and z axes (matrix columns 0, 2).
-
-    ``out``: optional (..., 6) array to write into (e.g. a block of columns of a wider one).
-    """
-    return _linear_in_products(q, _TANGENT_NORMAL_COEF, out)
+def tangent_normal(q: np.ndarray) -> np.ndarray:
+    """(..., 6) continuous rotation features: the rotated x and z axes (matrix columns 0, 2)."""
+    return _linear_in_products(q, _TANGENT_NORMAL_COEF)
