@@ -125,6 +125,23 @@ def test_files_from_before_the_point_encoder_option_load() -> None:
     torch.testing.assert_close(actor(*obs), reference(*obs), rtol=0, atol=0)
 
 
+def test_saved_configs_read_back_and_damaged_ones_say_what_is_wrong(tmp_path: Path) -> None:
+    """A config round-trips; one written before a key existed takes that key's default; a key
+    with a damaged name, or no ``output``, is a ValueError naming it (it was a KeyError)."""
+    from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict
+
+    cfg = TrainConfig(output=tmp_path / "run", clip=("flat_walk", "stairs_up"), confirm_episodes=7)
+    saved = config_to_dict(cfg)
+    assert config_from_dict(saved) == cfg
+    older = {k: v for k, v in saved.items() if k != "confirm_episodes"}
+    assert config_from_dict(older).confirm_episodes == TrainConfig(output=tmp_path).confirm_episodes
+    damaged = {("nutput" if k == "output" else k): v for k, v in saved.items()}
+    with pytest.raises(ValueError, match=r"unknown keys \['nutput'\]; no output"):
+        config_from_dict(damaged)
+    with pytest.raises(ValueError, match="model settings"):
+        config_from_dict({**saved, "model": {**saved["model"], "hiddn": 3}})
+
+
 def test_transformer_tokens_and_paper_size() -> None:
     config = ModelConfig(num_point_tokens=2)
     actor = TransformerActor(K, N_POINTS, ObsNormalizer(K), config)

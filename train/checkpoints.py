@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from crisp_gym.atomic import atomic_path
+from crisp_gym.file_errors import reading
 from crisp_gym.policy.files import CHECKPOINT_FORMAT, load_actor
 from crisp_gym.policy.networks import FixedStdGaussian
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict
@@ -85,7 +86,8 @@ def load_policy(path: str | Path, device: torch.device | str = "cpu") -> tuple[F
     a training checkpoint or a policy file (:func:`crisp_gym.policy.files.write_policy_file`).
     """
     loaded = load_actor(path, device)
-    return loaded.actor, config_from_dict(loaded.config)
+    with reading(path, "policy"):
+        return loaded.actor, config_from_dict(loaded.config)
 
 
 def check_resumable(saved: TrainConfig, cfg: TrainConfig, action: str = "resume") -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -222,9 +222,19 @@ def config_to_dict(cfg: TrainConfig) -> dict[str, Any]:
 
 
 def config_from_dict(data: dict[str, Any]) -> TrainConfig:
-    """Inverse of :func:`config_to_dict` (unknown keys are an error)."""
+    """Inverse of :func:`config_to_dict`. Keys added since a file was written take their
+    defaults; a dict that is no such config (unknown keys, no ``output`` or ``model``: a damaged
+    or foreign file) is a ValueError naming what is wrong."""
     data = dict(data)
-    model = model_config(data)
+    unknown = sorted(set(data) - {f.name for f in fields(TrainConfig)})
+    missing = [key for key in ("output", "model") if key not in data]
+    if unknown or missing:
+        raise ValueError(f"not a training config: {'unknown keys ' + str(unknown) if unknown else ''}"
+                         f"{'; ' if unknown and missing else ''}{'no ' + ' or '.join(missing) if missing else ''}")
+    try:
+        model = model_config(data)
+    except (TypeError, AttributeError) as err:
+        raise ValueError(f"not a training config: its model settings do not fit ({err})") from None
     del data["model"]
     for key in ("clip", "clip_weights"):  # JSON keeps tuples as lists
         if isinstance(data.get(key), list):
