@@ -61,7 +61,7 @@ def main(args: Args) -> list[dict]:
         t, u = commands(sc, rng)
         truth = draw_truth(sc, _template(sc, t, u), rng, cfg)
         log = synthesize(sc, truth, t, u, 1.0, rng)
-        tr = bind(log, sc.model)
+        tr = bind(log, sc.spec())
         rep = Replayer([tr], make_windows([tr], 0.5))
         label = "+".join(p["effect"] + (f"@{p['joint']}" if p.get("joint") else "") for p in truth.get("parts", [truth]))
         for kind, combo in _fits(truth, tr):

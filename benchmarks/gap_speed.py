@@ -61,7 +61,7 @@ def main(args: Args) -> None:
             cfg = DiagnoseConfig(nthread=2, show_progress=False, solver=solver)
             base_before = baseline_seconds(log, sc.model, cfg.window_s)
             t0, c0 = time.perf_counter(), time.process_time()
-            res = diagnose([(log, sc.model)], None, cfg)
+            res = diagnose([(log, sc.spec())], None, cfg)
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             base = 0.5 * (base_before + baseline_seconds(log, sc.model, cfg.window_s))
             walls[solver].append(seconds)

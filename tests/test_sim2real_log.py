@@ -103,7 +103,8 @@ def test_cli_model_gains_an_inert_support_placeholder(tmp_path):
     t = np.arange(20) * 0.01
     log = RealLog(time=t, qpos=np.zeros((20, 1)), ctrl=np.full((20, 1), 0.3), joint_names=("L_Knee_y",),
                   actuator_names=("L_Knee_y",))
-    _, model = load_any(save_log(log, tmp_path / "log.npz"), xml)
+    _, spec = load_any(save_log(log, tmp_path / "log.npz"), xml)
+    model = spec.compile()
     assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, SUPPORT_SLOT) >= 0
     assert mujoco.mj_name2id(plain, mujoco.mjtObj.mjOBJ_GEOM, SUPPORT_SLOT) < 0
     traj = []

@@ -4,7 +4,8 @@ how far it shrinks once modelled (checked on held-out data).
 Public API::
 
     from crisp_gym.sim2real import RealLog, load_log, save_log, diagnose, DiagnoseConfig, write_report
-    result = diagnose([(log, model)], holdout=None)      # Diagnosis: verdict, where, ranking, selected, ...
+    result = diagnose([(log, spec)], holdout=None)  # Diagnosis: verdict, where, ranking, selected, ...
+    # the model as an MjSpec (a compiled MjModel also works; effects that add parts are then skipped)
     write_report(result, "report_dir")
 
 The command line is :mod:`crisp_gym.sim2real.cli` (``crisp gap diagnose`` / ``crisp gap bench``).

@@ -18,18 +18,19 @@ from crisp_gym.sim2real.models import (
     SERVO_ACTUATOR,
     SERVO_JOINT,
     ServoConfig,
-    build_servo_pendulum,
-    load_go2_fixed_base,
+    build_servo_pendulum_spec,
+    load_go2_fixed_base_spec,
 )
 
 _SERVO_HEADER = ("mass", "length", "kp", "vin", "dt")
 _SERVO_ENTRY = ("position", "goal_position", "timestamp", "torque_enable")
 
 
-def load_servo_json(path: str | Path) -> tuple[RealLog, mujoco.MjModel]:
+def load_servo_json(path: str | Path) -> tuple[RealLog, mujoco.MjSpec]:
     """A servo JSON log (header ``{mass, length, kp, vin, motor, trajectory, dt}``,
     ``entries[]`` with ``position, speed, goal_position, torque_enable, timestamp`` in
-    rad, rad/s, s) and the pendulum model built from its header.
+    rad, rad/s, s) and the pendulum model built from its header (a spec: ``.compile()`` it
+    for an ``MjModel``; :func:`~crisp_gym.sim2real.diagnose.diagnose` takes either).
 
     ``torque_enable`` false becomes ``ctrl_enabled`` false: the servo exerts no torque.
     The logged ``speed`` is not used as ``qvel``: it is the servo's own coarse estimate
@@ -59,14 +60,14 @@ def load_servo_json(path: str | Path) -> tuple[RealLog, mujoco.MjModel]:
     log = RealLog(time=col["timestamp"], qpos=col["position"][:, None], ctrl=col["goal_position"][:, None],
                   joint_names=(SERVO_JOINT,), actuator_names=(SERVO_ACTUATOR,),
                   ctrl_enabled=col["torque_enable"].astype(bool)[:, None], meta=meta)
-    return log, build_servo_pendulum(cfg)
+    return log, build_servo_pendulum_spec(cfg)
 
 
 def load_go2_npz(path: str | Path, xml: str | Path | None = None, kp: float = GO2_KP,
-                 kd: float = GO2_KD) -> tuple[RealLog, mujoco.MjModel]:
+                 kd: float = GO2_KD) -> tuple[RealLog, mujoco.MjSpec]:
     """A Go2 log (``time``, ``dof_pos``, ``des_dof_pos`` (T, 12) in the order
     FL/FR/RL/RR x hip/thigh/calf) and the fixed-base model from ``xml`` (default:
-    ``go2.xml`` beside the log)."""
+    ``go2.xml`` beside the log), as a spec."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Go2 log not found: {path}")
@@ -78,8 +79,8 @@ def load_go2_npz(path: str | Path, xml: str | Path | None = None, kp: float = GO
     time, q, qd = (np.asarray(z[k], dtype=float) for k in ("time", "dof_pos", "des_dof_pos"))
     if q.shape[1:] != (12,) or qd.shape != q.shape:
         raise ValueError(f"Go2 dof_pos/des_dof_pos must be (T, 12), got {q.shape} and {qd.shape}")
-    model = load_go2_fixed_base(xml, kp, kd)
-    actuators = tuple(model.actuator(i).name for i in range(model.nu))
+    spec = load_go2_fixed_base_spec(xml, kp, kd)
+    actuators = tuple(a.name for a in spec.actuators)
     log = RealLog(time=time, qpos=q, ctrl=qd, joint_names=GO2_JOINTS, actuator_names=actuators,
                   meta={"format": "go2_npz", "source": str(path), "kp": kp, "kd": kd})
-    return log, model
+    return log, spec

@@ -160,13 +160,14 @@ def add_gear_play(spec: mujoco.MjSpec, joint: str, half_width: float, start: flo
     end the tendon's limit takes the torque, the rotor striking it. The joint's armature (the
     motor's reflected inertia) moves to the rotor; a joint without one gets a rotor of
     ``rotor_inertia``. The bench's truth for :class:`~crisp_gym.sim2real.effects.GearPlay`,
-    which models it without the rotor (a massless motor)."""
+    built here on its own so that the library's model of it is checked against another."""
     target = spec.joint(joint)
     rotor_name = f"{joint}_rotor"
     rotor = spec.worldbody.add_body(name=rotor_name, mass=1e-3, inertia=[1e-6, 1e-6, 1e-6],
                                     explicitinertial=True)
+    # the rotor starts on the joint, mid-gap (``ref`` is in the spec's angle unit)
     rotor.add_joint(name=rotor_name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
-                    armature=target.armature or rotor_inertia, ref=start)
+                    armature=target.armature or rotor_inertia, ref=np.degrees(start) if spec.compiler.degree else start)
     target.armature = 0.0
     driven = [a for a in spec.actuators if a.target == joint]
     if not driven:
@@ -382,11 +383,11 @@ def part_signatures(sc: Scenario, truth: dict, log: RealLog, window_s: float) ->
     """Each part's own size beside the others, for a truth of several effects: the windowed
     RMS gap, on a noise-free log of the truth, of the model that carries every *other* part
     at its true value (empty for a single effect). A gear play among the others is replayed
-    by the library's approximation of it, which can only make the part look larger."""
+    by the library's own (its rotor's inertia may differ from the truth's)."""
     parts = truth.get("parts", [])
     if not parts:
         return []
-    tr = bind(log, sc.model, validate=False)
+    tr = bind(log, sc.spec(), validate=False)
     rep = Replayer([tr], make_windows([tr], window_s), 2)
     sizes = []
     for i in range(len(parts)):
@@ -472,7 +473,7 @@ def run_bench(cfg: BenchConfig, out_dir: str | Path, dcfg: DiagnoseConfig | None
         sizes = part_signatures(sc, truth, exact, dcfg.window_s)
         write_text(out / "truth" / f"case{i:03d}.json", json.dumps(
             {**truth, "model": sc.name, "noise": noise, "signature": size, "part_signatures": sizes}))
-        result = diagnose([(train, sc.model)], [(test, sc.model)], dcfg)  # the truth stays on disk
+        result = diagnose([(train, sc.spec())], [(test, sc.spec())], dcfg)  # the truth stays on disk
         row = {"case": i, "model": sc.name, "noise": noise, "hidden": truth.get("effect", truth.get("kind", "none")),
                "selected": (result.selected or {}).get("effect"), "seconds": result.seconds,
                **score_case(json.loads((out / "truth" / f"case{i:03d}.json").read_text()), result)}

@@ -61,7 +61,7 @@ class Bench:
     """The diagnosis's settings for every case."""
 
 
-def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjModel]:
+def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjSpec]:
     """A log and its model, whatever its format."""
     if not path.is_file():
         raise FileNotFoundError(f"log not found: {path}")
@@ -69,7 +69,7 @@ def load_any(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjMod
         return _load_log(path, model_path)
 
 
-def _load_log(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjModel]:
+def _load_log(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjSpec]:
     if path.suffix == ".json":
         return load_servo_json(path)
     keys = set(read_npz(path, "real log (npz or servo JSON)"))
@@ -80,7 +80,7 @@ def _load_log(path: Path, model_path: Path | None) -> tuple[RealLog, mujoco.MjMo
     if not model_path.is_file():
         raise FileNotFoundError(f"model not found: {model_path}")
     # The parked placeholder lets the library try a support the scene lacks (inert otherwise).
-    return load_log(path), add_support_slot(mujoco.MjSpec.from_file(str(model_path))).compile()
+    return load_log(path), add_support_slot(mujoco.MjSpec.from_file(str(model_path)))
 
 
 def run_diagnose(args: Diagnose) -> int:

@@ -118,7 +118,7 @@ class Candidate:
         return len(self.x)
 
 
-def _split(pairs: list[tuple[RealLog, mujoco.MjModel]], fraction: float, blocks: int):
+def _split(pairs: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]], fraction: float, blocks: int):
     train, test = [], []
     for log, model in pairs:
         fitted, held = log.holdout_blocks(fraction, blocks)
@@ -160,7 +160,7 @@ def resynthesize(rep: Replayer, combo: Combo, x: np.ndarray, rng: np.random.Gene
         noisy = q + rng.normal(0.0, 1.0, q.shape) * tr.sigma[None]
         # Logged velocities are synthesised too, with their own noise; else they are derived.
         qvel = None if tr.sigma_v is None else v + rng.normal(0.0, 1.0, v.shape) * tr.sigma_v[None]
-        trajs.append(bind(replace(tr.log, qpos=noisy, qvel=qvel), tr.model, validate=False))
+        trajs.append(replace(bind(replace(tr.log, qpos=noisy, qvel=qvel), tr.model, validate=False), spec=tr.spec))
     return trajs
 
 
@@ -177,7 +177,7 @@ def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, dr
     floors = []
     for k in range(draws):
         trajs = resynthesize(rep, combo, x, np.random.default_rng(seed + k))
-        srep = Replayer(trajs, rep.windows, len(rep._datas))
+        srep = Replayer(trajs, rep.windows, rep.nthread)
         r = residuals(srep, [combo.inputs(x, trajs)])[0]
         floors.append(np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum()))
     overall = [float(np.mean(f**2)) for f in floors]
@@ -198,7 +198,7 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
     for b in range(draws):
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
-        fitter = Fitter(Replayer(trajs, rep.windows, len(rep._datas)), max_iter, solver=solver)
+        fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver)
         refits.append(fitter.fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
@@ -260,9 +260,12 @@ class Diagnosis:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "replay"}
 
 
-def diagnose(train: list[tuple[RealLog, mujoco.MjModel]], holdout: list[tuple[RealLog, mujoco.MjModel]] | None = None,
+def diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
+             holdout: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]] | None = None,
              config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on)."""
+    """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on). Given as
+    an ``MjSpec``, the model can also be extended by the effects that add parts to it (a gear's
+    rotor); given compiled, those effects are skipped."""
     cfg = config or DiagnoseConfig()
     t_start = time.perf_counter()
     if not train:

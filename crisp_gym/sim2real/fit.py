@@ -29,6 +29,8 @@ class Combo:
     """One or more effects applied together, with their parameters concatenated."""
 
     def __init__(self, effects: tuple[Effect, ...], ref: Trajectory) -> None:
+        if sum(e.adds_state for e in effects) > 1:
+            raise ValueError(f"at most one effect of a combination may extend the model: {[e.label for e in effects]}")
         self.effects = effects
         self.ref = ref
         self._params = [e.params(ref) for e in effects]
@@ -58,9 +60,10 @@ class Combo:
     def inputs(self, x: np.ndarray, trajs: list[Trajectory]) -> SimInputs:
         """The models and signals of every trajectory with the effects applied at ``x``."""
         parts = self.split(x)
-        models, ctrl, qpos, qvel, friction, command = [], [], [], [], [], []
+        models, ctrl, qpos, qvel, friction, start = [], [], [], [], [], []
+        extending = [e for e in self.effects if e.adds_state]
         for tr in trajs:
-            model = tr.model
+            model = extending[0].extended_model(tr) if extending else tr.model
             if any(e.touches_model for e in self.effects):
                 model = model.__copy__()
                 for e, xe in zip(self.effects, parts):
@@ -78,9 +81,9 @@ class Combo:
             qvel.append(sig.qvel)
             items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_friction]
             friction.append(partial(_state_friction, items, tr, model, sig.ctrl) if items else None)
-            items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_command]
-            command.append(partial(_state_command, items, tr) if items else None)
-        return SimInputs(models, ctrl, qpos, qvel, friction, command)
+            start.append(next((partial(e.start_state, xe, tr, model) for e, xe in zip(self.effects, parts)
+                               if e.adds_state), None))
+        return SimInputs(models, ctrl, qpos, qvel, friction, start)
 
 
 class Frozen(Effect):
@@ -92,7 +95,7 @@ class Frozen(Effect):
         self.effect, self.x = effect, np.asarray(x, dtype=float)
         self.name, self.family = effect.name, effect.family
         self.touches_model, self.state_friction = effect.touches_model, effect.state_friction
-        self.state_command = effect.state_command
+        self.adds_state = effect.adds_state
         self.changes_inertia = effect.changes_inertia
 
     @property
@@ -117,8 +120,12 @@ class Frozen(Effect):
     def friction(self, x, tr, model, ctrl, enabled, qpos, qvel) -> np.ndarray:
         return self.effect.friction(self.x, tr, model, ctrl, enabled, qpos, qvel)
 
-    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
-        return self.effect.command(self.x, tr, ctrl, qpos)
+    def extended_model(self, tr: Trajectory) -> mujoco.MjModel:
+        return self.effect.extended_model(tr)
+
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
+                    ctrl: np.ndarray) -> np.ndarray:
+        return self.effect.start_state(self.x, tr, model, states, ctrl)
 
 
 def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, model, ctrl: np.ndarray,
@@ -127,15 +134,6 @@ def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, mode
     :data:`~crisp_gym.sim2real.replay.FrictionFn` once bound to a trajectory)."""
     u, enabled = ctrl[idx * tr.nsub], tr.enabled[idx]
     return sum(e.friction(xe, tr, model, u, enabled, qpos, qvel) for e, xe in items)
-
-
-def _state_command(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, ctrl: np.ndarray,
-                   qpos: np.ndarray) -> np.ndarray:
-    """The commands after every state-dependent command effect of ``items`` (a
-    :data:`~crisp_gym.sim2real.replay.CommandFn` once bound to a trajectory)."""
-    for e, xe in items:
-        ctrl = e.command(xe, tr, ctrl, qpos)
-    return ctrl
 
 
 def residuals(replayer: Replayer, inputs: list[SimInputs]) -> np.ndarray:

@@ -13,9 +13,11 @@ Friction that depends on the state (load-dependent, Stribeck) cannot live in a f
 ``MjModel``: such candidates are stepped one log sample at a time, each window with its own
 model copy whose ``dof_frictionloss`` is set before every sample. In replay windows the
 friction follows the *logged* state (the window stays close to it, as with the logged
-initial velocity); in open loop (synthesis) it follows the simulated state. Commands that
-depend on the state (a gear's play) are stepped the same way, from the *simulated* state
-everywhere: computed from the logged one, they would pull each window onto the log.
+initial velocity); in open loop (synthesis) it follows the simulated state.
+
+A candidate model may have more state than the log's (a gear's rotor): its windows start
+from the logged joints' state, the rest set by the candidate's :data:`StartFn`, and models
+of each state layout run in a rollout of their own.
 """
 
 from __future__ import annotations
@@ -59,6 +61,8 @@ class Trajectory:
     absent from the log keep command 0. ``enabled`` (T, nu) marks powered actuators.
     ``qvel`` is the logged velocity, or a smoothed derivative of the positions when the log
     has none; ``sigma`` / ``sigma_v`` the measurement noise of positions / logged velocities.
+    ``spec`` is the model's source when it was given as an ``MjSpec`` (effects that add parts
+    to the model, such as a gear's rotor, need it).
     """
 
     log: RealLog
@@ -72,6 +76,7 @@ class Trajectory:
     qvel: np.ndarray
     sigma: np.ndarray
     sigma_v: np.ndarray | None = None
+    spec: mujoco.MjSpec | None = None
     _variants: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -95,9 +100,14 @@ class Trajectory:
         return self._variants[key][1]
 
 
-def bind(log: RealLog, model: mujoco.MjModel, validate: bool = True) -> Trajectory:
+def bind(log: RealLog, model: mujoco.MjModel | mujoco.MjSpec, validate: bool = True) -> Trajectory:
     """Validate ``log`` against ``model`` (unless it was synthesised from the model
-    itself) and prepare it for replay."""
+    itself) and prepare it for replay. ``model`` may be an ``MjSpec``: it is compiled, and
+    kept for the effects that add parts to the model."""
+    spec = None
+    if isinstance(model, mujoco.MjSpec):
+        spec = model.copy()  # the caller may go on editing theirs
+        model = spec.compile()
     if validate:
         validate_against_model(log, model)
     model = model.__copy__()
@@ -116,7 +126,7 @@ def bind(log: RealLog, model: mujoco.MjModel, validate: bool = True) -> Trajecto
     qvel = log.qvel if log.qvel is not None else smooth_derivative(log.qpos, dt)
     return Trajectory(log=log, model=model, nsub=nsub, qadr=qadr, dadr=dadr, act=act,
                       ctrl=np.repeat(ctrl, nsub, axis=0), enabled=enabled, qvel=qvel, sigma=noise_sigma(log.qpos),
-                      sigma_v=None if log.qvel is None else noise_sigma(log.qvel))
+                      sigma_v=None if log.qvel is None else noise_sigma(log.qvel), spec=spec)
 
 
 @dataclass(frozen=True)
@@ -192,9 +202,10 @@ FrictionFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 """State-dependent dry friction: ``(sample indices (k,), positions (k, n), velocities
 (k, n)) -> added frictionloss (k, n)`` on the logged joints' dofs."""
 
-CommandFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
-"""State-dependent commands: ``(commands over one log sample (k, nsub, nu), the logged joints'
-simulated positions at its start (k, n)) -> the commands the actuators see (k, nsub, nu)``."""
+StartFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""Initial states of a model with more state than the log's: ``(full states (k, nstate) in the
+model's layout, the logged joints already set; the commands at their samples (k, nu)) -> the
+states with the rest set``."""
 
 
 @dataclass
@@ -202,21 +213,21 @@ class SimInputs:
     """What one candidate model feeds the replay, per trajectory: the models (before
     switching actuators off), fine-grid commands, the log seen in the model's frame
     (the initial states and the targets, after measurement effects are undone) and,
-    where the candidate has state-dependent friction or commands, its :data:`FrictionFn` or
-    :data:`CommandFn`."""
+    where the candidate has state-dependent friction or state beyond the log's, its
+    :data:`FrictionFn` or :data:`StartFn`."""
 
     models: list[mujoco.MjModel]
     ctrl: list[np.ndarray]
     qpos: list[np.ndarray]
     qvel: list[np.ndarray]
     friction: list[FrictionFn | None] | None = None
-    command: list[CommandFn | None] | None = None
+    start: list[StartFn | None] | None = None
 
     def friction_of(self, ti: int) -> FrictionFn | None:
         return None if self.friction is None else self.friction[ti]
 
-    def command_of(self, ti: int) -> CommandFn | None:
-        return None if self.command is None else self.command[ti]
+    def start_of(self, ti: int) -> StartFn | None:
+        return None if self.start is None else self.start[ti]
 
 
 def nominal_inputs(trajs: list[Trajectory]) -> SimInputs:
@@ -224,8 +235,13 @@ def nominal_inputs(trajs: list[Trajectory]) -> SimInputs:
                      [t.qvel for t in trajs])
 
 
+def _layout_key(model: mujoco.MjModel) -> tuple[int, ...]:
+    """Models with equal keys share a state layout (and can share one rollout call)."""
+    return model.nq, model.nv, model.na, mujoco.mj_stateSize(model, _STATE)
+
+
 class Replayer:
-    """Runs windows of many candidates in one batched rollout."""
+    """Runs windows of many candidates in one batched rollout (one per state layout)."""
 
     def __init__(self, trajs: list[Trajectory], windows: Windows, nthread: int = 2) -> None:
         names = trajs[0].log.joint_names
@@ -233,17 +249,35 @@ class Replayer:
             if t.log.joint_names != names or abs(t.log.dt - trajs[0].log.dt) > 1e-6 * trajs[0].log.dt:
                 raise ValueError("all logs of one diagnosis must log the same joints at the same rate")
         self.trajs, self.windows = trajs, windows
-        m0 = trajs[0].model
         self.nsub = trajs[0].nsub
         self.nstep = (windows.size - 1) * self.nsub
-        self._datas = [mujoco.MjData(m0) for _ in range(max(1, nthread))]
-        self._template = np.zeros(mujoco.mj_stateSize(m0, _STATE))
-        data = mujoco.MjData(m0)
-        mujoco.mj_getState(m0, data, self._template, _STATE)
+        self.nthread = max(1, nthread)
+        self._layouts: dict[tuple[int, ...], tuple[np.ndarray, list[mujoco.MjData]]] = {}
         self._qadr, self._dadr = trajs[0].qadr, trajs[0].dadr
         self.mask = windows.mask()
         offsets = np.arange(windows.size)
         self._idx = [np.minimum(windows.start[:, None] + offsets[None], len(t.log.time) - 1) for t in trajs]
+
+    def _layout(self, model: mujoco.MjModel) -> tuple[np.ndarray, list[mujoco.MjData]]:
+        """The default full state and the rollout datas of models of ``model``'s state layout."""
+        key = _layout_key(model)
+        if key not in self._layouts:
+            data = mujoco.MjData(model)
+            template = np.zeros(mujoco.mj_stateSize(model, _STATE))
+            mujoco.mj_getState(model, data, template, _STATE)
+            self._layouts[key] = template, [mujoco.MjData(model) for _ in range(self.nthread)]
+        return self._layouts[key]
+
+    def _start_states(self, inp: SimInputs, ti: int, samples: np.ndarray) -> np.ndarray:
+        """(k, nstate) full states at log samples ``samples`` in the layout of the candidate's model."""
+        model = inp.models[ti]
+        nq1 = 1 + model.nq
+        out = np.tile(self._layout(model)[0], (len(samples), 1))
+        out[:, 0] = self.trajs[ti].log.time[samples]
+        out[:, 1 + self._qadr] = inp.qpos[ti][samples]
+        out[:, nq1 + self._dadr] = inp.qvel[ti][samples]
+        fn = inp.start_of(ti)
+        return out if fn is None else fn(out, inp.ctrl[ti][samples * self.nsub])
 
     def targets(self, inputs: SimInputs) -> np.ndarray:
         """(nwin, size - 1, n) the logged positions each window is compared with."""
@@ -258,80 +292,65 @@ class Replayer:
         """Predicted positions (ncand, nwin, size - 1, n) of the logged joints."""
         w = self.windows
         nw, nc = len(w), len(candidates)
-        nq1 = 1 + self.trajs[0].model.nq
-        init = np.tile(self._template, (nc * nw, 1))
+        init: list[np.ndarray] = [None] * (nc * nw)  # type: ignore[list-item]
         ctrl = np.empty((nc * nw, self.nstep, self.trajs[0].model.nu))
         models: list[mujoco.MjModel] = [None] * (nc * nw)  # type: ignore[list-item]
         fine = np.arange(self.nstep)
         stepped = np.zeros(nc * nw, dtype=bool)
         added = np.zeros((nc * nw, w.size - 1, len(self._qadr)))
-        commands: list[CommandFn | None] = [None] * (nc * nw)
         for c, inp in enumerate(candidates):
-            rows = slice(c * nw, (c + 1) * nw)
             for ti, tr in enumerate(self.trajs):
                 sel = np.flatnonzero(w.traj == ti)
                 if not len(sel):
                     continue
+                rows = c * nw + sel
                 s0 = w.start[sel]
-                block = init[rows][sel]
-                block[:, 0] = tr.log.time[s0]
-                block[:, 1 + self._qadr] = inp.qpos[ti][s0]
-                block[:, nq1 + self._dadr] = inp.qvel[ti][s0]
-                init[c * nw + sel] = block
+                for r, k, state in zip(rows, sel, self._start_states(inp, ti, s0)):
+                    init[r] = state
+                    models[r] = tr.model_for(inp.models[ti], w.pattern[k])
                 fidx = np.minimum(s0[:, None] * self.nsub + fine[None], len(inp.ctrl[ti]) - 1)
-                ctrl[c * nw + sel] = inp.ctrl[ti][fidx]
-                for k in sel:
-                    models[c * nw + k] = tr.model_for(inp.models[ti], w.pattern[k])
+                ctrl[rows] = inp.ctrl[ti][fidx]
                 fn = inp.friction_of(ti)
                 if fn is not None:
                     idx = self._idx[ti][sel, :-1]
                     f = fn(idx.reshape(-1), inp.qpos[ti][idx].reshape(-1, len(self._qadr)),
                            inp.qvel[ti][idx].reshape(-1, len(self._dadr)))
-                    added[c * nw + sel] = f.reshape(len(sel), w.size - 1, -1)
-                    stepped[c * nw + sel] = True
-                command = inp.command_of(ti)
-                if command is not None:
-                    for k in sel:
-                        commands[c * nw + k] = command
-                    stepped[c * nw + sel] = True
+                    added[rows] = f.reshape(len(sel), w.size - 1, -1)
+                    stepped[rows] = True
         q = np.empty((nc * nw, w.size - 1, len(self._qadr)))
-        plain = np.flatnonzero(~stepped)
-        if len(plain):
-            states, _ = rollout.rollout([models[r] for r in plain], self._datas, init[plain], ctrl[plain],
-                                        persistent_pool=True)
-            q[plain] = states[:, self.nsub - 1::self.nsub, 1:nq1][:, :, self._qadr]
-        rows = np.flatnonzero(stepped)
-        if len(rows):
-            q[rows] = self._stepped([models[r] for r in rows], init[rows], ctrl[rows], added[rows],
-                                    [commands[r] for r in rows])
+        layouts: dict[tuple[int, ...], list[int]] = {}
+        for r, m in enumerate(models):
+            layouts.setdefault(_layout_key(m), []).append(r)
+        for rows in map(np.array, layouts.values()):
+            datas = self._layout(models[rows[0]])[1]
+            states0 = np.stack([init[r] for r in rows])
+            plain, rubbing = ~stepped[rows], stepped[rows]
+            if plain.any():
+                states, _ = rollout.rollout([models[r] for r in rows[plain]], datas, states0[plain], ctrl[rows[plain]],
+                                            persistent_pool=True)
+                q[rows[plain]] = states[:, self.nsub - 1::self.nsub, 1 + self._qadr]
+            if rubbing.any():
+                q[rows[rubbing]] = self._stepped([models[r] for r in rows[rubbing]], datas, states0[rubbing],
+                                                 ctrl[rows[rubbing]], added[rows[rubbing]])
         return q.reshape(nc, nw, w.size - 1, -1)
 
-    def _stepped(self, models: list[mujoco.MjModel], init: np.ndarray, ctrl: np.ndarray,
-                 added: np.ndarray, commands: list[CommandFn | None]) -> np.ndarray:
+    def _stepped(self, models: list[mujoco.MjModel], datas: list[mujoco.MjData], init: np.ndarray, ctrl: np.ndarray,
+                 added: np.ndarray) -> np.ndarray:
         """Rollouts one log sample at a time, each row's frictionloss set to its nominal
-        value plus ``added`` (rows, samples, n) and its commands passed through its
-        :data:`CommandFn` (if any) before every sample. Only rows with friction to add get a
-        model copy of their own (copying a model costs more than stepping it a sample)."""
+        value plus ``added`` (rows, samples, n) before every sample. Only rows with friction
+        to add get a model copy of their own (copying a model costs more than stepping it a sample)."""
         rubbing = np.flatnonzero(np.any(added != 0.0, axis=(1, 2)))
         own = list(models)
         for r in rubbing:
             own[r] = models[r].__copy__()
         base = [own[r].dof_frictionloss[self._dadr].copy() for r in rubbing]
-        groups: dict[int, tuple[CommandFn, list[int]]] = {}  # the rows of each candidate's command
-        for r, fn in enumerate(commands):
-            if fn is not None:
-                groups.setdefault(id(fn), (fn, []))[1].append(r)
         q = np.empty(added.shape)
         state = init
         for k in range(added.shape[1]):
             for r, b in zip(rubbing, base):
                 own[r].dof_frictionloss[self._dadr] = np.maximum(b + added[r, k], 0.0)
             u = ctrl[:, k * self.nsub:(k + 1) * self.nsub]
-            if groups:
-                u = u.copy()
-                for fn, rows in groups.values():
-                    u[rows] = fn(u[rows], state[rows][:, 1 + self._qadr])
-            states, _ = rollout.rollout(own, self._datas, state, u, persistent_pool=True)
+            states, _ = rollout.rollout(own, datas, state, u, persistent_pool=True)
             state = states[:, -1]
             q[:, k] = state[:, 1 + self._qadr]
         return q
@@ -352,37 +371,33 @@ class Replayer:
             q = np.empty((t_len, len(self._qadr)))
             v = np.empty((t_len, len(self._dadr)))
             q[0], v[0] = inputs.qpos[ti][0], inputs.qvel[ti][0]
-            state = self._template.copy()
-            nq1 = 1 + tr.model.nq
-            state[1 + self._qadr] = inputs.qpos[ti][0]
-            state[nq1 + self._dadr] = inputs.qvel[ti][0]
+            state = self._start_states(inputs, ti, np.array([0]))[0]
+            nq1 = 1 + inputs.models[ti].nq
+            data = self._layout(inputs.models[ti])[1][0]
             en = tr.enabled
             cuts = np.flatnonzero(np.any(en[1:] != en[:-1], axis=1)) + 1
             bounds = np.concatenate([[0], cuts, [t_len]])
-            fn, command = inputs.friction_of(ti), inputs.command_of(ti)
+            fn = inputs.friction_of(ti)
             for a, b in zip(bounds[:-1], bounds[1:]):
                 n_samples = b - a if b < t_len else b - a - 1
                 if n_samples <= 0:
                     continue
                 model = tr.model_for(inputs.models[ti], tuple(bool(x) for x in en[a]))
-                if fn is None and command is None:
+                if fn is None:
                     u = inputs.ctrl[ti][a * self.nsub:(a + n_samples) * self.nsub][None]
-                    states, _ = rollout.rollout(model, self._datas[0], state[None], u)
+                    states, _ = rollout.rollout(model, data, state[None], u)
                     q[a + 1:a + 1 + n_samples] = states[0, self.nsub - 1::self.nsub][:, 1 + self._qadr]
                     v[a + 1:a + 1 + n_samples] = states[0, self.nsub - 1::self.nsub][:, nq1 + self._dadr]
                     state = states[0, -1]
                     continue
-                # State-dependent friction and commands follow the simulated state, sample by sample.
+                # State-dependent friction follows the simulated state, sample by sample.
                 own = model.__copy__()
                 base = own.dof_frictionloss[self._dadr].copy()
                 for k in range(a, a + n_samples):
-                    if fn is not None:
-                        f = fn(np.array([k]), state[None, 1 + self._qadr], state[None, nq1 + self._dadr])[0]
-                        own.dof_frictionloss[self._dadr] = np.maximum(base + f, 0.0)
+                    f = fn(np.array([k]), state[None, 1 + self._qadr], state[None, nq1 + self._dadr])[0]
+                    own.dof_frictionloss[self._dadr] = np.maximum(base + f, 0.0)
                     u = inputs.ctrl[ti][k * self.nsub:(k + 1) * self.nsub][None]
-                    if command is not None:
-                        u = command(u, state[None, 1 + self._qadr])
-                    states, _ = rollout.rollout(own, self._datas[0], state[None], u)
+                    states, _ = rollout.rollout(own, data, state[None], u)
                     state = states[0, -1]
                     q[k + 1], v[k + 1] = state[1 + self._qadr], state[nq1 + self._dadr]
             out.append((q, v))

@@ -13,8 +13,9 @@ Identification treats delays on the command and on the sensor as one family: whe
 servo closes its loop on its own encoder, both shift the response by the same amount in
 an open-loop replay and cannot be told apart from position logs.
 
-The effects by what they change: :mod:`~crisp_gym.sim2real.effects.signals` (delays, backlash and gear
-play, encoder bias), :mod:`~crisp_gym.sim2real.effects.joints` (friction, damping, armature, gains, saturation),
+The effects by what they change: :mod:`~crisp_gym.sim2real.effects.signals` (delays, backlash,
+encoder bias), :mod:`~crisp_gym.sim2real.effects.gear_play` (a gear's play, with the motor's rotor
+added to the model), :mod:`~crisp_gym.sim2real.effects.joints` (friction, damping, armature, gains, saturation),
 :mod:`~crisp_gym.sim2real.effects.loads` (mass, centre of mass, payload, load-dependent, gearbox and
 Stribeck friction) and :mod:`~crisp_gym.sim2real.effects.ground`; what they share is
 :mod:`~crisp_gym.sim2real.effects.base`. This module lists them (:data:`EFFECT_TYPES`) and makes the
@@ -58,7 +59,8 @@ from crisp_gym.sim2real.effects.loads import (
     lever_scale,
     release_inertial_frame,
 )
-from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderBias, GearPlay, SensorDelay
+from crisp_gym.sim2real.effects.gear_play import GearPlay, add_rotors
+from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderBias, SensorDelay
 from crisp_gym.sim2real.replay import Trajectory
 
 __all__ = [
@@ -66,9 +68,9 @@ __all__ = [
     "ComShift", "ContactSoftness", "CoulombFriction", "Effect", "EncoderBias", "GainScale", "GearPlay",
     "GearboxFriction", "GroundFriction", "GroundHeight", "GroundTilt", "LoadFriction", "MassScale", "Param",
     "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox", "TorqueSaturation", "ViscousDamping",
-    "actuator_torque", "add_point_mass", "check_families", "external_torque", "ground_geoms", "ground_top",
-    "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame", "speed_scale",
-    "support_points", "torque_scale",
+    "actuator_torque", "add_point_mass", "add_rotors", "check_families", "external_torque", "ground_geoms",
+    "ground_top", "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame",
+    "speed_scale", "support_points", "torque_scale",
 ]
 
 

@@ -49,7 +49,7 @@ class Effect:
     gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
     points the fit descends from, for effects with several local minima. ``refines``: the
     name of a simpler effect this one elaborates (gearbox friction contains load friction as
-    a special case; gear play is the physical form of the play operator); the diagnosis fits
+    a special case); the diagnosis fits
     it only where that one, in the same scope, ranks among the best, from :meth:`nested_starts`.
     """
 
@@ -58,7 +58,7 @@ class Effect:
     touches_model = False
     changes_inertia = False  # edits masses, centres of mass or inertias: the model's constants are recomputed
     state_friction = False
-    state_command = False  # the commands depend on the simulated state (stepped one log sample at a time)
+    adds_state = False  # replays on a model with parts the log's lacks (:meth:`extended_model`)
     per_joint_allowed = True
     focus_allowed = False
     refine = 1  # how many of the best start points are descended from (several local minima)
@@ -135,10 +135,17 @@ class Effect:
         (k, nu) and powered actuators (k, nu) there (only if ``state_friction``)."""
         raise NotImplementedError
 
-    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
-        """The commands the actuators see over one log sample, (k, nsub, nu), given the commands
-        (k, nsub, nu) and the logged joints' simulated positions (k, n) at its start (only if
-        ``state_command``)."""
+    def extended_model(self, tr: Trajectory) -> mujoco.MjModel:
+        """``tr``'s model with the bodies, joints and tendons this effect adds (only if
+        ``adds_state``), which :meth:`edit_model` then edits. The logged joints keep their
+        state addresses and the actuators their order."""
+        raise NotImplementedError
+
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
+                    ctrl: np.ndarray) -> np.ndarray:
+        """Full initial states (k, nstate) of ``model`` (the extended model at ``x``) with the
+        added state set, given ``states`` with the logged joints' state in place and the
+        commands (k, nu) there (only if ``adds_state``)."""
         raise NotImplementedError
 
 

@@ -1,5 +1,5 @@
-"""Effects on the signals: actuator and sensor delay, backlash (on the command, and as a gear's
-play), encoder bias."""
+"""Effects on the signals: actuator and sensor delay, backlash (a play operator on the command),
+encoder bias."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from crisp_gym.sim2real.effects.base import Effect, Param, Signals
 from crisp_gym.sim2real.replay import Trajectory
 
 # A play's half-width, for the play operator and the gear alike: bounds, step and start points.
-_HALF_WIDTH = Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")
-_HALF_WIDTH_STARTS = (0.003, 0.01, 0.03, 0.08)
+HALF_WIDTH = Param("half_width", 0.01, 0.0, 0.2, 5e-4, "rad")
+HALF_WIDTH_STARTS = (0.003, 0.01, 0.03, 0.08)
 
 
 def _shift(signal: np.ndarray, shift: float) -> np.ndarray:
@@ -79,10 +79,10 @@ class Backlash(Effect):
     name, family, per_joint_allowed, focus_allowed = "backlash", "backlash", False, True
 
     def params(self, tr: Trajectory) -> list[Param]:
-        return [_HALF_WIDTH]
+        return [HALF_WIDTH]
 
     def starts(self, tr: Trajectory) -> list[np.ndarray]:
-        return [np.array([b]) for b in _HALF_WIDTH_STARTS]
+        return [np.array([b]) for b in HALF_WIDTH_STARTS]
 
     def edit_signals(self, sig: Signals, x: np.ndarray, tr: Trajectory) -> Signals:
         acts = np.concatenate(self.actuators_of(tr, self.columns(tr)))
@@ -97,43 +97,6 @@ class Backlash(Effect):
         ctrl = sig.ctrl.copy()
         ctrl[:, acts] = np.repeat(y, tr.nsub, axis=0)[:len(ctrl)]
         return Signals(ctrl, sig.qpos, sig.qvel)
-
-
-class GearPlay(Effect):
-    """Play in the gear train between motor and joint, of half-width ``half_width``: the motor
-    turns freely inside the gap and drives the joint only from the side it pushes on. A load
-    keeps the gear on its side, so the joint settles ``half_width`` short of the command there,
-    and the side flips with the sign of the torque the gear transmits (``u - q``), not with the
-    command's direction as the play operator of :class:`Backlash` does. The motor is taken as
-    massless: it crosses the gap at once (no impacts), and its damping stays on the joint.
-    Commands follow the simulated state, one log sample at a time. Fitted where the play
-    operator ranks well (a log with play in it), from the play operator's half-width.
-    """
-
-    name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
-    state_command = True
-    refines = "backlash"
-
-    def params(self, tr: Trajectory) -> list[Param]:
-        return [_HALF_WIDTH]
-
-    def starts(self, tr: Trajectory) -> list[np.ndarray]:
-        return [np.array([b]) for b in _HALF_WIDTH_STARTS]
-
-    def nested_starts(self, simple: np.ndarray, tr: Trajectory) -> list[np.ndarray]:
-        b = max(float(simple[0]), 0.003)
-        return [np.array([b]), np.array([2.0 * b])]
-
-    def command(self, x: np.ndarray, tr: Trajectory, ctrl: np.ndarray, qpos: np.ndarray) -> np.ndarray:
-        # The motor's target stands ``half_width`` back from the command on the side the gear
-        # pushes; inside the gap it stands on the joint (no torque from the position error).
-        out = ctrl.copy()
-        cols = self.columns(tr)
-        for c, drives in zip(cols, self.actuators_of(tr, cols)):
-            if len(drives):
-                u = ctrl[:, :, drives]
-                out[:, :, drives] = u - np.clip(u - qpos[:, c, None, None], -x[0], x[0])
-        return out
 
 
 class EncoderBias(Effect):

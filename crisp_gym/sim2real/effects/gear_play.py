@@ -1,0 +1,132 @@
+"""Play in a gear train, modelled as the real mechanism: a rotor for the motor, and a gap."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from crisp_gym.sim2real.effects.base import CannotApply, Effect, Param, inertia_scale, joint_actuators
+from crisp_gym.sim2real.effects.signals import HALF_WIDTH, HALF_WIDTH_STARTS
+from crisp_gym.sim2real.replay import Trajectory
+
+_ROTOR_SHARE = 0.01  # a joint without armature: its rotor's inertia, as a share of the joint's own
+
+
+@dataclass(frozen=True)
+class _Rotors:
+    """Where an extended model keeps its rotors: per geared joint, its logged column, the
+    rotor's position and velocity addresses, the play tendon and the actuators that drive it."""
+
+    cols: np.ndarray
+    qadr: np.ndarray
+    dadr: np.ndarray
+    tendons: np.ndarray
+    actuators: list[np.ndarray]
+
+
+def add_rotors(spec: mujoco.MjSpec, joints: list[str], inertia: list[float], timestep: float) -> None:
+    """Put a gear with play between every joint of ``joints`` and its actuators (``spec``, in place).
+
+    Each joint gets a rotor: a hinge on the world of inertia ``inertia`` (its armature, the
+    motor's reflected inertia, moves there). The joint's actuators drive the rotor instead, and a
+    tendon (rotor minus joint, named ``<joint>_play``) limited to the gap's half-width couples
+    the two; the limit is as stiff as ``timestep`` allows, so the rotor strikes the gap's ends."""
+    for joint, rotor_inertia in zip(joints, inertia):
+        target = spec.joint(joint)
+        name = f"{joint}_rotor"
+        # no geometry and a negligible mass at the world origin: only the hinge's armature counts
+        body = spec.worldbody.add_body(name=name, mass=1e-6, inertia=[1e-9] * 3, explicitinertial=True)
+        body.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], armature=rotor_inertia)
+        target.armature = 0.0
+        for actuator in spec.actuators:
+            if actuator.target == joint:
+                actuator.target = name
+        gap = spec.add_tendon(name=f"{joint}_play", limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                              range=[-HALF_WIDTH.x0, HALF_WIDTH.x0], solref_limit=[2 * timestep, 1.0])
+        gap.wrap_joint(name, 1.0)
+        gap.wrap_joint(joint, -1.0)
+
+
+class GearPlay(Effect):
+    """Play in the gear train between the motor and the joint, of half-width ``half_width``.
+
+    The actuators turn a rotor (the motor, carrying the joint's armature), which drives the
+    joint only while it presses on one end of the gap. Inside the gap the joint feels no motor
+    torque and the rotor turns freely until it strikes the other end. The side it presses on
+    flips with the sign of the torque the gear transmits, not with the command's direction as
+    the play operator of :class:`~crisp_gym.sim2real.effects.signals.Backlash` does. A joint
+    without armature gets a rotor of 1 % of its own inertia.
+
+    The rotor is a part added to the model, so this effect needs the model as an ``MjSpec``
+    (otherwise the diagnosis skips it and says so). Replay windows start each rotor where
+    the drive's force balance puts it, on the side it pushes.
+    """
+
+    name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
+    touches_model = adds_state = True
+
+    def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
+        super().__init__(joints, per_joint)
+        self._extended: dict[int, tuple[mujoco.MjSpec, mujoco.MjModel, _Rotors]] = {}
+
+    def applicable(self, tr: Trajectory) -> bool:
+        return any(len(a) for a in joint_actuators(tr, self.columns(tr)))
+
+    def params(self, tr: Trajectory) -> list[Param]:
+        return [HALF_WIDTH]
+
+    def starts(self, tr: Trajectory) -> list[np.ndarray]:
+        return [np.array([b]) for b in HALF_WIDTH_STARTS]
+
+    def _build(self, tr: Trajectory) -> tuple[mujoco.MjSpec, mujoco.MjModel, _Rotors]:
+        """The extended model of ``tr``'s spec, built once per spec (resynthesised logs share it)."""
+        if tr.spec is None:
+            raise CannotApply("gear play adds a rotor to the model: pass the model as an MjSpec")
+        key = id(tr.spec)
+        if key not in self._extended:
+            cols = [c for c, a in zip(self.columns(tr), joint_actuators(tr, self.columns(tr))) if len(a)]
+            names = [tr.log.joint_names[c] for c in cols]
+            armature = tr.model.dof_armature[tr.dadr[cols]]
+            inertia = np.where(armature > 0, armature, _ROTOR_SHARE * inertia_scale(tr)[cols])
+            spec = tr.spec.copy()
+            add_rotors(spec, names, list(inertia), tr.model.opt.timestep)
+            model = spec.compile()
+            model.opt.timestep = tr.model.opt.timestep
+            nq, nv = tr.model.nq, tr.model.nv
+            if (model.nu != tr.model.nu or not np.array_equal(model.jnt_qposadr[:tr.model.njnt], tr.model.jnt_qposadr)
+                    or model.nq != nq + len(cols) or model.nv != nv + len(cols)):
+                raise CannotApply("the model compiled from its spec does not match the log's model")
+            rotors = _Rotors(np.array(cols), np.array([model.jnt_qposadr[model.joint(f"{n}_rotor").id] for n in names]),
+                             np.array([model.jnt_dofadr[model.joint(f"{n}_rotor").id] for n in names]),
+                             np.array([model.tendon(f"{n}_play").id for n in names]),
+                             joint_actuators(tr, np.array(cols)))
+            self._extended[key] = tr.spec, model, rotors  # the spec held so that its id stays unique
+        return self._extended[key]
+
+    def extended_model(self, tr: Trajectory) -> mujoco.MjModel:
+        return self._build(tr)[1]
+
+    def edit_model(self, model: mujoco.MjModel, x: np.ndarray, tr: Trajectory) -> None:
+        tendons = self._build(tr)[2].tendons
+        model.tendon_range[tendons] = [-x[0], x[0]]
+
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
+                    ctrl: np.ndarray) -> np.ndarray:
+        # Each rotor starts where its drive's force balance puts it (a servo: on its target)
+        # within the gap, and, for a drive without stiffness, pressing on the side it pushes.
+        rotors = self._build(tr)[2]
+        nq1 = 1 + model.nq
+        out = states.copy()
+        for c, rq, rd, acts in zip(rotors.cols, rotors.qadr, rotors.dadr, rotors.actuators):
+            q, v = states[:, 1 + tr.qadr[c]], states[:, nq1 + tr.dadr[c]]
+            gear = model.actuator_gear[acts, 0]
+            gain, bias = model.actuator_gainprm[acts, 0], model.actuator_biasprm[acts, :3]
+            law = gain * ctrl[:, acts] + bias[:, 0] + gear * (bias[:, 1] * q[:, None] + bias[:, 2] * v[:, None])
+            force = (law * gear).sum(axis=1)
+            stiffness = float(np.sum(-bias[:, 1] * gear**2))
+            offset = force / stiffness if stiffness > 0 else np.sign(force) * x[0]
+            out[:, 1 + rq] = q + np.clip(offset, -x[0], x[0])
+            out[:, nq1 + rd] = v
+        return out
