@@ -66,6 +66,9 @@ def test_outside_effect_is_unexplained(tmp_path):
     assert sum(b["share_of_power"] for b in res.residual["bands"]) == pytest.approx(1.0)
     text = (write_report(res, tmp_path / "rep", plots=False) / "report.md").read_text()
     assert "not a cause" in text and "What remains" in text
+    warned = replace(res, mujoco_warnings={"Nan, Inf or huge value in QACC at DOF N": 3})
+    text = (write_report(warned, tmp_path / "warned", plots=False) / "report.md").read_text()
+    assert "- 3 × Nan, Inf or huge value in QACC at DOF N" in text
 
 
 @needs_go2
@@ -619,6 +622,29 @@ def test_gear_play_is_fitted_back_from_a_real_gap() -> None:
     assert gear.x[0] == pytest.approx(0.02, rel=0.05)
     for other in (fx.Backlash(joints=(joint,)), fx.CoulombFriction(joints=(joint,))):
         assert gear.train_gap < 0.3 * fitter.fit(Combo((other,), tr)).train_gap
+
+
+def test_mujoco_warnings_are_counted_not_printed_or_logged(tmp_path, monkeypatch, capfd) -> None:
+    """A replay that blows up inside ``collected_warnings`` is counted by message, nothing is
+    printed or written to MUJOCO_LOG.TXT, and the previous handler is back afterwards."""
+    from mujoco import rollout
+
+    from crisp_gym.sim2real.replay import collected_warnings
+
+    monkeypatch.chdir(tmp_path)
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><option timestep="0.01"/><worldbody><body><joint name="j"/><geom size=".1" mass="1e-6"/>'
+        '</body></worldbody><actuator><position joint="j" kp="1e9"/></actuator></mujoco>')
+    state = np.zeros((8, mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)))
+    previous = mujoco.get_mju_user_warning()
+    with collected_warnings() as counts:
+        rollout.rollout([model] * 8, [mujoco.MjData(model) for _ in range(2)], state, np.ones((8, 50, 1)))
+    assert sum(counts.values()) >= 8
+    assert all("N" in message and not any(ch.isdigit() for ch in message) for message in counts)
+    assert mujoco.get_mju_user_warning() is previous
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    printed = capfd.readouterr()
+    assert "unstable" not in printed.out + printed.err
 
 
 def test_a_sweep_held_out_at_its_end_is_flagged_as_faster_and_blocks_spread_it():

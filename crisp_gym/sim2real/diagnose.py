@@ -14,6 +14,7 @@ gets "none"; a gap that no effect brings near the floor is "unexplained".
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -26,7 +27,7 @@ from crisp_gym.sim2real.effects import CannotApply, Effect, Param, check_familie
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, Solver, gap_rms, residuals
 from crisp_gym.sim2real.gap import residual_structure, where
 from crisp_gym.sim2real.log import RealLog
-from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, make_windows, nominal_inputs
+from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, collected_warnings, make_windows, nominal_inputs
 
 
 @dataclass(frozen=True)
@@ -253,6 +254,7 @@ class Diagnosis:
     shrink_above_floor: float
     rollouts: int
     seconds: float
+    mujoco_warnings: dict[str, int]
     replay: Replay = field(repr=False)
 
     def to_json(self) -> dict[str, Any]:
@@ -266,7 +268,13 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     """Diagnose the sim-to-real gap of ``train`` logs (each with the model it ran on). Given as
     an ``MjSpec``, the model can also be extended by the effects that add parts to it (a gear's
     rotor); given compiled, those effects are skipped."""
-    cfg = config or DiagnoseConfig()
+    with collected_warnings() as warnings:
+        return _diagnose(train, holdout, config or DiagnoseConfig(), warnings)
+
+
+def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
+              holdout: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]] | None, cfg: DiagnoseConfig,
+              warnings: Counter[str]) -> Diagnosis:
     t_start = time.perf_counter()
     if not train:
         raise ValueError("diagnose needs at least one log")
@@ -373,6 +381,7 @@ def diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
         shrink_above_floor=(float(1 - max(gap_after**2 - floor**2, 0) / excess0) if excess0 > 0 else 0.0),
         rollouts=fitter.rollouts,
         seconds=time.perf_counter() - t_start,
+        mujoco_warnings=dict(warnings),
         replay=replay,
     )
 

@@ -22,7 +22,10 @@ of each state layout run in a rollout of their own.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import re
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import mujoco
@@ -51,6 +54,21 @@ def noise_sigma(q: np.ndarray, window: int = 9) -> np.ndarray:
     h0 = savgol_coeffs(window, 3)[window // 2]
     resid = q - savgol_filter(q, window, 3, axis=0, mode="interp")
     return np.std(resid, axis=0) / np.sqrt(1.0 - h0)
+
+
+@contextmanager
+def collected_warnings() -> Iterator[Counter[str]]:
+    """MuJoCo's warnings inside the block, counted by message (numbers as ``N``) instead of printed
+    and appended to ``MUJOCO_LOG.TXT`` in the working directory. Fits try parameters under which
+    some windows diverge; MuJoCo resets those and warns each time, which is expected there. The
+    previous handler is restored on exit."""
+    counts: Counter[str] = Counter()
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: counts.update([re.sub(r"\d+(\.\d+)?", "N", message)]))
+    try:
+        yield counts
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 @dataclass

@@ -117,6 +117,12 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
         lines += ["## Candidates that cannot act on these logs (skipped)", ""]
         lines += [f"- {s['effect']}: {s['reason']}" for s in result.skipped]
         lines.append("")
+    if result.mujoco_warnings:
+        lines += ["## MuJoCo's warnings during the fits", "",
+                  "Trial parameters under which a replay window diverged: MuJoCo resets such a window, which "
+                  "then counts with a large gap. Expected while fitting.", ""]
+        lines += [f"- {count} × {message}" for message, count in result.mujoco_warnings.items()]
+        lines.append("")
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
