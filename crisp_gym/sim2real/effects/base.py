@@ -49,8 +49,10 @@ class Effect:
     gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
     points the fit descends from, for effects with several local minima. ``refines``: the
     name of a simpler effect this one elaborates (gearbox friction contains load friction as
-    a special case); the diagnosis fits
-    it only where that one, in the same scope, ranks among the best, from :meth:`nested_starts`.
+    a special case); the diagnosis fits it only where that one, in the same scope, ranks among
+    the best, from :meth:`nested_starts`. ``adds_state``: the effect replays on a model with
+    parts the log's model lacks (:meth:`extended_model`), whose extra state each window starts
+    from :meth:`start_state`.
     """
 
     name = "effect"
