@@ -86,7 +86,7 @@ def load_policy(path: str | Path, device: torch.device | str = "cpu") -> tuple[F
     a training checkpoint or a policy file (:func:`crisp_gym.policy.files.write_policy_file`).
     """
     loaded = load_actor(path, device)
-    with reading(path, "policy"):
+    with reading(loaded.path, "policy"):
         return loaded.actor, config_from_dict(loaded.config)
 
 
