@@ -565,6 +565,7 @@ def test_gear_play_rests_a_half_width_short_on_the_load_side(u: float) -> None:
 
 
 def _arm_log(truth: dict | None, seed: int = 1) -> tuple:
+    """The arm's scenario and a noisy log of ``truth`` (None: the nominal model), bound with its spec."""
     sc = scenario("arm", BenchConfig())
     rng = np.random.default_rng(seed)
     t, u = commands(sc, rng)
@@ -591,7 +592,7 @@ def test_models_of_two_state_layouts_replay_in_one_call_as_apart() -> None:
 def test_gear_play_needs_the_models_spec() -> None:
     """Given the compiled model only, gear play cannot add its rotor and says why (the
     diagnosis then skips it with that reason)."""
-    sc, tr = _arm_log(None)
+    _, tr = _arm_log(None)
     with pytest.raises(fx.CannotApply, match="MjSpec"):
         Combo((fx.GearPlay(),), replace(tr, spec=None)).inputs(np.array([0.01]), [replace(tr, spec=None)])
 
@@ -611,8 +612,8 @@ def test_gear_play_is_left_out_where_no_actuator_drives_the_joint() -> None:
 
 def test_gear_play_is_fitted_back_from_a_real_gap() -> None:
     """On the arm, a log made with the bench's own rotor and real gap in one joint's gear
-    train: the library's gear play finds the gap's half-width, leaves about the noise floor,
-    and explains the log far better than the play operator on the command or Coulomb friction."""
+    train: the library's gear play finds the gap's half-width and explains the log far better
+    than the play operator on the command or Coulomb friction."""
     from crisp_gym.sim2real.bench import driven_joints
 
     joint = driven_joints(scenario("arm", BenchConfig()))[1]
