@@ -610,6 +610,39 @@ def test_gear_play_is_left_out_where_no_actuator_drives_the_joint() -> None:
     assert "gear_play[rail]" not in labels
 
 
+def test_rotor_track_follows_the_simulated_rotor_closer_than_its_force_balance() -> None:
+    """A noise-free log of the library's own gear model (arm, 0.02 rad gaps on every drive), its
+    rotors' true places in their gaps kept: rotor_track, which sees only the log, finds them to
+    within a quarter of the error of the quasi-static guess (the drive's force balance, clipped
+    to the gap) that windows started from before (measured: 0.0013 against 0.0118 rad)."""
+    from mujoco import rollout
+
+    from crisp_gym.sim2real.effects.gear_play import rotor_track
+
+    sc, tr = _arm_log(None)
+    effect, b = fx.GearPlay(), 0.02
+    inputs = Combo((effect,), tr).inputs(np.array([b]), [tr])
+    model = inputs.models[0]
+    first = Replayer([tr], make_windows([tr], 0.3))._start_states(inputs, 0, np.array([0]))
+    states, _ = rollout.rollout(model, mujoco.MjData(model), first, inputs.ctrl[0][None])
+    full = np.concatenate([first, states[0, tr.nsub - 1::tr.nsub]])[:len(tr.log.time)]
+    rotors = effect._build(tr)[2]
+    exact = replace(bind(replace(tr.log, qpos=full[:, 1 + tr.qadr]), sc.spec(), validate=False),
+                    qvel=full[:, 1 + model.nq + tr.dadr])
+    q = exact.log.qpos[:, rotors.cols]
+    truth = full[:, 1 + rotors.qadr] - q
+    offset, _ = rotor_track(b, exact, model, inputs.ctrl[0], rotors.cols, rotors.dadr, rotors.actuators)
+    drives = np.concatenate(rotors.actuators)  # one position servo per joint on the arm
+    gain, stiffness = model.actuator_gainprm[drives, 0], -model.actuator_biasprm[drives, 1]
+    target = inputs.ctrl[0][::tr.nsub][:, drives] * gain / stiffness
+    guess = np.clip(target - q, -b, b)
+    moving = np.abs(truth).max(axis=0) > 0.5 * b  # drives whose rotor does cross its gap
+    assert moving.any()
+    err_track = np.sqrt(np.mean((offset - truth)[:, moving] ** 2))
+    err_guess = np.sqrt(np.mean((guess - truth)[:, moving] ** 2))
+    assert err_track < 0.25 * err_guess
+
+
 def test_gear_play_is_fitted_back_from_a_real_gap() -> None:
     """On the arm, a log made with the bench's own rotor and real gap in one joint's gear
     train: the library's gear play finds the gap's half-width and explains the log far better

@@ -81,7 +81,7 @@ class Combo:
             qvel.append(sig.qvel)
             items = [(e, xe) for e, xe in zip(self.effects, parts) if e.state_friction]
             friction.append(partial(_state_friction, items, tr, model, sig.ctrl) if items else None)
-            start.append(next((partial(e.start_state, xe, tr, model) for e, xe in zip(self.effects, parts)
+            start.append(next((partial(e.start_state, xe, tr, model, sig.ctrl) for e, xe in zip(self.effects, parts)
                                if e.adds_state), None))
         return SimInputs(models, ctrl, qpos, qvel, friction, start)
 
@@ -123,9 +123,9 @@ class Frozen(Effect):
     def extended_model(self, tr: Trajectory) -> mujoco.MjModel:
         return self.effect.extended_model(tr)
 
-    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
-                    ctrl: np.ndarray) -> np.ndarray:
-        return self.effect.start_state(self.x, tr, model, states, ctrl)
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray,
+                    states: np.ndarray, samples: np.ndarray) -> np.ndarray:
+        return self.effect.start_state(self.x, tr, model, ctrl, states, samples)
 
 
 def _state_friction(items: list[tuple[Effect, np.ndarray]], tr: Trajectory, model, ctrl: np.ndarray,

@@ -222,8 +222,8 @@ FrictionFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 StartFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """Initial states of a model with more state than the log's: ``(full states (k, nstate) in the
-model's layout, the logged joints already set; the commands at their samples (k, nu)) -> the
-states with the rest set``."""
+model's layout, the logged joints already set; their log samples (k,)) -> the states with the
+rest set``."""
 
 
 @dataclass
@@ -295,7 +295,7 @@ class Replayer:
         out[:, 1 + self._qadr] = inp.qpos[ti][samples]
         out[:, nq1 + self._dadr] = inp.qvel[ti][samples]
         fn = inp.start_of(ti)
-        return out if fn is None else fn(out, inp.ctrl[ti][samples * self.nsub])
+        return out if fn is None else fn(out, samples)
 
     def targets(self, inputs: SimInputs) -> np.ndarray:
         """(nwin, size - 1, n) the logged positions each window is compared with."""

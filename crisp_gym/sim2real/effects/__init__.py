@@ -59,7 +59,7 @@ from crisp_gym.sim2real.effects.loads import (
     lever_scale,
     release_inertial_frame,
 )
-from crisp_gym.sim2real.effects.gear_play import GearPlay, add_rotors
+from crisp_gym.sim2real.effects.gear_play import GearPlay, add_rotors, rotor_track
 from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderBias, SensorDelay
 from crisp_gym.sim2real.replay import Trajectory
 
@@ -70,7 +70,7 @@ __all__ = [
     "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox", "TorqueSaturation", "ViscousDamping",
     "actuator_torque", "add_point_mass", "add_rotors", "check_families", "external_torque", "ground_geoms",
     "ground_top", "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame",
-    "speed_scale", "support_points", "torque_scale",
+    "rotor_track", "speed_scale", "support_points", "torque_scale",
 ]
 
 

@@ -143,11 +143,11 @@ class Effect:
         state addresses and the actuators their order."""
         raise NotImplementedError
 
-    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
-                    ctrl: np.ndarray) -> np.ndarray:
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray,
+                    states: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """Full initial states (k, nstate) of ``model`` (the extended model at ``x``) with the
-        added state set, given ``states`` with the logged joints' state in place and the
-        commands (k, nu) there (only if ``adds_state``)."""
+        added state set, given the fine-grid commands (T * nsub, nu), ``states`` with the logged
+        joints' state in place and their log ``samples`` (k,) (only if ``adds_state``)."""
         raise NotImplementedError
 
 

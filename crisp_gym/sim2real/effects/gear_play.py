@@ -61,7 +61,7 @@ class GearPlay(Effect):
 
     The rotor is a part added to the model, so this effect needs the model as an ``MjSpec``
     (otherwise the diagnosis skips it and says so). Replay windows start each rotor where
-    the drive's force balance puts it, on the side it pushes.
+    :func:`rotor_track` has it.
     """
 
     name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
@@ -112,21 +112,57 @@ class GearPlay(Effect):
         tendons = self._build(tr)[2].tendons
         model.tendon_range[tendons] = [-x[0], x[0]]
 
-    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, states: np.ndarray,
-                    ctrl: np.ndarray) -> np.ndarray:
-        # Each rotor starts where its drive's force balance puts it (a servo: on its target)
-        # within the gap, and, for a drive without stiffness, pressing on the side it pushes.
+    def start_state(self, x: np.ndarray, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray,
+                    states: np.ndarray, samples: np.ndarray) -> np.ndarray:
+        # Where a rotor is inside its gap is not in the log: it is tracked through the log by
+        # rotor_track, each rotor alone against its joint's logged motion.
         rotors = self._build(tr)[2]
+        offset, speed = rotor_track(x[0], tr, model, ctrl, rotors.cols, rotors.dadr, rotors.actuators)
         nq1 = 1 + model.nq
         out = states.copy()
-        for c, rq, rd, acts in zip(rotors.cols, rotors.qadr, rotors.dadr, rotors.actuators):
-            q, v = states[:, 1 + tr.qadr[c]], states[:, nq1 + tr.dadr[c]]
-            gear = model.actuator_gear[acts, 0]
-            gain, bias = model.actuator_gainprm[acts, 0], model.actuator_biasprm[acts, :3]
-            law = gain * ctrl[:, acts] + bias[:, 0] + gear * (bias[:, 1] * q[:, None] + bias[:, 2] * v[:, None])
-            force = (law * gear).sum(axis=1)
-            stiffness = float(np.sum(-bias[:, 1] * gear**2))
-            offset = force / stiffness if stiffness > 0 else np.sign(force) * x[0]
-            out[:, 1 + rq] = q + np.clip(offset, -x[0], x[0])
-            out[:, nq1 + rd] = v
+        for i, (c, rq, rd) in enumerate(zip(rotors.cols, rotors.qadr, rotors.dadr)):
+            out[:, 1 + rq] = states[:, 1 + tr.qadr[c]] + offset[samples, i]
+            out[:, nq1 + rd] = speed[samples, i]
         return out
+
+
+def rotor_track(half_width: float, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, cols: np.ndarray,
+                rotor_dofs: np.ndarray, actuators: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(T, R) each rotor's place in its gap (rotor minus joint) and its speed at every log sample,
+    integrated at the log's rate from its drive's law on the logged commands (``ctrl``, fine
+    grid), the joint following its log. Inside the gap a rotor turns under its drive alone (the
+    drive's stiffness and damping taken implicitly; a saturated drive's clamped force with only
+    its passive damping, the drives of one joint clamped together); at either end it moves with
+    the joint. It starts where the drive's force balance puts it."""
+    dt, q, v = tr.log.dt, tr.log.qpos[:, cols], tr.qvel[:, cols]
+    u = ctrl[::tr.nsub]
+    # each rotor's drives summed: force = drive - stiff * theta - damp * omega (all (T, R))
+    drive, stiff, damp = (np.zeros(q.shape) for _ in range(3))
+    passive, lo, hi = np.zeros(len(cols)), np.full(len(cols), -np.inf), np.full(len(cols), np.inf)
+    for i, acts in enumerate(actuators):
+        gear, on = model.actuator_gear[acts, 0], tr.enabled[:, acts]
+        law = model.actuator_gainprm[acts, 0] * u[:, acts] + model.actuator_biasprm[acts, 0]
+        drive[:, i] = np.sum(law * gear * on, axis=1)
+        stiff[:, i] = np.sum(-model.actuator_biasprm[acts, 1] * gear**2 * on, axis=1)
+        damp[:, i] = np.sum(-model.actuator_biasprm[acts, 2] * gear**2 * on, axis=1)
+        passive[i] = np.sum(model.actuator_damping[acts] * gear**2)
+        if model.actuator_forcelimited[acts].all():
+            lo[i], hi[i] = np.sum(model.actuator_forcerange[acts] * gear[:, None], axis=0)
+    inertia = model.dof_armature[rotor_dofs] + 1e-12
+    balance = np.divide(drive[0], stiff[0], out=q[0].copy(), where=stiff[0] > 0)
+    theta, omega = q[0] + np.clip(balance - q[0], -half_width, half_width), v[0].copy()
+    offset, speed = np.empty(q.shape), np.empty(q.shape)
+    offset[0], speed[0] = theta - q[0], omega
+    for t in range(1, len(q)):
+        k, c = stiff[t], damp[t] + passive
+        free = (inertia * omega + dt * (drive[t] - k * theta)) / (inertia + dt * c + dt * dt * k)
+        force = drive[t] - k * (theta + dt * free) - damp[t] * free
+        clamped = (inertia * omega + dt * np.clip(force, lo, hi)) / (inertia + dt * passive)
+        omega = np.where((force < lo) | (force > hi), clamped, free)
+        theta = theta + dt * omega
+        rel = theta - q[t]
+        end = np.abs(rel) > half_width  # at an end of the gap: the rotor moves with the joint
+        theta = np.where(end, q[t] + np.sign(rel) * half_width, theta)
+        omega = np.where(end, v[t], omega)
+        offset[t], speed[t] = theta - q[t], omega
+    return offset, speed
