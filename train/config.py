@@ -228,9 +228,9 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
     data = dict(data)
     unknown = sorted(set(data) - {f.name for f in fields(TrainConfig)})
     missing = [key for key in ("output", "model") if key not in data]
-    if unknown or missing:
-        raise ValueError(f"not a training config: {'unknown keys ' + str(unknown) if unknown else ''}"
-                         f"{'; ' if unknown and missing else ''}{'no ' + ' or '.join(missing) if missing else ''}")
+    problems = ([f"unknown keys {unknown}"] if unknown else []) + (["no " + " or ".join(missing)] if missing else [])
+    if problems:
+        raise ValueError("not a training config: " + "; ".join(problems))
     try:
         model = model_config(data)
     except (TypeError, AttributeError) as err:

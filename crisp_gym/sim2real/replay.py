@@ -280,10 +280,10 @@ class Replayer:
         """The default full state and the rollout datas of models of ``model``'s state layout."""
         key = _layout_key(model)
         if key not in self._layouts:
-            data = mujoco.MjData(model)
+            datas = [mujoco.MjData(model) for _ in range(self.nthread)]
             template = np.zeros(mujoco.mj_stateSize(model, _STATE))
-            mujoco.mj_getState(model, data, template, _STATE)
-            self._layouts[key] = template, [mujoco.MjData(model) for _ in range(self.nthread)]
+            mujoco.mj_getState(model, datas[0], template, _STATE)
+            self._layouts[key] = template, datas
         return self._layouts[key]
 
     def _start_states(self, inp: SimInputs, ti: int, samples: np.ndarray) -> np.ndarray:
@@ -316,12 +316,14 @@ class Replayer:
         fine = np.arange(self.nstep)
         stepped = np.zeros(nc * nw, dtype=bool)
         added = np.zeros((nc * nw, w.size - 1, len(self._qadr)))
+        layouts: dict[tuple[int, ...], list[int]] = {}  # the rows of each state layout
         for c, inp in enumerate(candidates):
             for ti, tr in enumerate(self.trajs):
                 sel = np.flatnonzero(w.traj == ti)
                 if not len(sel):
                     continue
                 rows = c * nw + sel
+                layouts.setdefault(_layout_key(inp.models[ti]), []).extend(rows)
                 s0 = w.start[sel]
                 for r, k, state in zip(rows, sel, self._start_states(inp, ti, s0)):
                     init[r] = state
@@ -336,9 +338,6 @@ class Replayer:
                     added[rows] = f.reshape(len(sel), w.size - 1, -1)
                     stepped[rows] = True
         q = np.empty((nc * nw, w.size - 1, len(self._qadr)))
-        layouts: dict[tuple[int, ...], list[int]] = {}
-        for r, m in enumerate(models):
-            layouts.setdefault(_layout_key(m), []).append(r)
         for rows in map(np.array, layouts.values()):
             datas = self._layout(models[rows[0]])[1]
             states0 = np.stack([init[r] for r in rows])

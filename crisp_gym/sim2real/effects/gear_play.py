@@ -117,7 +117,8 @@ class GearPlay(Effect):
         # Where a rotor is inside its gap is not in the log: it is tracked through the log by
         # rotor_track, each rotor alone against its joint's logged motion.
         rotors = self._build(tr)[2]
-        offset, speed = rotor_track(x[0], tr, model, ctrl, rotors.cols, rotors.dadr, rotors.actuators)
+        offset, speed = rotor_track(x[0], tr, model, ctrl, rotors.cols, rotors.dadr, rotors.actuators,
+                                    last=int(samples.max()))  # the samples after the last start are not needed
         nq1 = 1 + model.nq
         out = states.copy()
         for i, (c, rq, rd) in enumerate(zip(rotors.cols, rotors.qadr, rotors.dadr)):
@@ -127,20 +128,23 @@ class GearPlay(Effect):
 
 
 def rotor_track(half_width: float, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, cols: np.ndarray,
-                rotor_dofs: np.ndarray, actuators: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(T, R) each rotor's place in its gap (rotor minus joint) and its speed at every log sample,
-    integrated at the log's rate from its drive's law on the logged commands (``ctrl``, fine
-    grid), the joint following its log. Inside the gap a rotor turns under its drive alone (the
-    drive's stiffness and damping taken implicitly; a saturated drive's clamped force with only
-    its passive damping, the drives of one joint clamped together); at either end it moves with
-    the joint. It starts where the drive's force balance puts it."""
-    dt, q, v = tr.log.dt, tr.log.qpos[:, cols], tr.qvel[:, cols]
-    u = ctrl[::tr.nsub]
+                rotor_dofs: np.ndarray, actuators: list[np.ndarray],
+                last: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(T, R) each rotor's place in its gap (rotor minus joint) and its speed at every log sample
+    up to ``last`` (default: the log's last; T = last + 1), integrated at the log's rate from its
+    drive's law on the logged commands (``ctrl``, fine grid), the joint following its log.
+    Inside the gap a rotor turns under its drive alone (the drive's stiffness and damping taken
+    implicitly; a saturated drive's clamped force with only its passive damping, the drives of
+    one joint clamped together); at either end it moves with the joint. It starts where the
+    drive's force balance puts it."""
+    end = len(tr.log.time) if last is None else last + 1
+    dt, q, v = tr.log.dt, tr.log.qpos[:end, cols], tr.qvel[:end, cols]
+    u, enabled = ctrl[::tr.nsub][:end], tr.enabled[:end]
     # each rotor's drives summed: force = drive - stiff * theta - damp * omega (all (T, R))
     drive, stiff, damp = (np.zeros(q.shape) for _ in range(3))
     passive, lo, hi = np.zeros(len(cols)), np.full(len(cols), -np.inf), np.full(len(cols), np.inf)
     for i, acts in enumerate(actuators):
-        gear, on = model.actuator_gear[acts, 0], tr.enabled[:, acts]
+        gear, on = model.actuator_gear[acts, 0], enabled[:, acts]
         law = model.actuator_gainprm[acts, 0] * u[:, acts] + model.actuator_biasprm[acts, 0]
         drive[:, i] = np.sum(law * gear * on, axis=1)
         stiff[:, i] = np.sum(-model.actuator_biasprm[acts, 1] * gear**2 * on, axis=1)
