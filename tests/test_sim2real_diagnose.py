@@ -11,7 +11,7 @@ import pytest
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
-from crisp_gym.sim2real.fit import Combo, Fitter
+from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
@@ -136,12 +136,17 @@ def test_both_solvers_fit_a_per_joint_effect_through_its_diagonal_jacobian():
     assert fits["mujoco"].rollouts < fits["batched"].rollouts
 
 
-def test_fitter_rejects_an_unknown_solver():
+def test_fitter_rejects_an_unknown_solver_and_a_step_fraction_outside_0_1():
     sc = scenario("servo", BenchConfig())
     _, train, _ = _case({"family": "none"}, seed=4)
     tr = bind(train, sc.model)
     with pytest.raises(ValueError, match="unknown solver"):
         Fitter(Replayer([tr], make_windows([tr], 0.5)), solver="scipy")
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="step_fraction"):
+            Fitter(Replayer([tr], make_windows([tr], 0.5)), step_fraction=bad)
+        with pytest.raises(ValueError, match="step_fraction"):
+            DiagnoseConfig(step_fraction=bad)
 
 
 def test_report_files(tmp_path):
@@ -451,6 +456,27 @@ def test_a_payload_at_the_foot_is_found_with_its_mass():
     res = diagnose([(train, sc.model)], [(test, sc.model)], replace(CFG, families=("mass",)))
     assert res.verdict == "explained" and res.selected["effect"] == "payload[FL_calf_joint]"
     assert abs(_selected_value(res, "mass") - 0.4) < 0.08
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_payload_on_a_stamping_leg_is_fitted_through_the_costs_roughness(seed: int) -> None:
+    """The rail leg's foot stamps on the floor, so the replay's cost is rugged on fine scales:
+    the payload's own millimetre steps stall near its start (offset 0), below the truth's
+    fit; steps of 3 % of each range (the default) reach the truth's gap and its offset."""
+    sc = scenario("rail_leg", BenchConfig())
+    rng = np.random.default_rng(seed)
+    t, u = commands(sc, rng)
+    x_true = np.array([0.3, 0.15, 0.0, -0.15])  # kg; m along, across the hinge axis, down
+    truth = {"family": "mass", "effect": "payload", "joint": "knee", "x": list(x_true)}
+    tr = bind(synthesize(sc, truth, t, u, 1.0, rng), sc.model)
+    rep = Replayer([tr], make_windows([tr], 0.5))
+    combo = Combo((fx.Payload(joints=("knee",)),), tr)
+    truth_gap = gap_rms(residuals(rep, [combo.inputs(x_true, [tr])])[0], rep.mask)
+    coarse = Fitter(rep).fit(combo)
+    fine = Fitter(rep, step_fraction=0.0).fit(combo)
+    assert coarse.train_gap <= truth_gap
+    assert abs(coarse.x[0] - 0.3) < 0.05 and abs(coarse.x[1] - 0.15) < 0.04
+    assert fine.train_gap > 1.2 * truth_gap
 
 
 def test_bench_draws_two_effects_on_two_joints():

@@ -57,6 +57,9 @@ class DiagnoseConfig:
         none_factor: a held-out gap below none_factor x the noise floor means "none".
         explained_factor: the winner explains the gap if it leaves at most this x the floor.
         max_iter: Levenberg-Marquardt iterations per fit.
+        step_fraction: the fits' finite-difference steps are at least this fraction of each
+            parameter's range (:class:`~crisp_gym.sim2real.fit.Fitter`): contacts make the
+            replay's cost rugged on finer scales.
         solver: the fits' Levenberg-Marquardt (:data:`~crisp_gym.sim2real.fit.Solver`):
             ``"mujoco"`` (``mujoco.minimize.least_squares``, 40 % fewer rollouts over the
             bench's models, ``benchmarks/gap_lm.py``) or ``"batched"`` (the project's own).
@@ -86,6 +89,7 @@ class DiagnoseConfig:
     none_factor: float = 1.5
     explained_factor: float = 1.6
     max_iter: int = 15
+    step_fraction: float = 0.03
     solver: Solver = "mujoco"
     nthread: int = 2
     seed: int = 0
@@ -100,6 +104,8 @@ class DiagnoseConfig:
         if not 0.0 < self.holdout_fraction < 1.0 or self.holdout_blocks < 1:
             raise ValueError(f"holdout_fraction must be in (0, 1) and holdout_blocks at least 1, got "
                              f"{self.holdout_fraction} and {self.holdout_blocks}")
+        if not 0.0 <= self.step_fraction < 1.0:
+            raise ValueError(f"step_fraction must be in [0, 1), got {self.step_fraction}")
 
 
 @dataclass
@@ -186,7 +192,8 @@ def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, dr
 
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
-                       max_iter: int = 3, solver: Solver = "mujoco") -> tuple[np.ndarray, np.ndarray]:
+                       max_iter: int = 3, solver: Solver = "mujoco",
+                       step_fraction: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
     training logs it resynthesises itself (:func:`resynthesize`). The refits' mean offset
     is a bias of replay fits (noisy initial states and velocities), which the sandwich
@@ -199,7 +206,8 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
     for b in range(draws):
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
-        fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver)
+        fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver,
+                        step_fraction=step_fraction)
         refits.append(fitter.fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
@@ -299,7 +307,7 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     train_rms = np.sqrt(np.sum(r0_train**2, axis=(0, 1)) / rep_train.mask.sum())
     focus = names[int(np.argmax(train_rms**2 - floor_j**2))]
 
-    fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver)
+    fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver, step_fraction=cfg.step_fraction)
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
     skipped: list[dict[str, str]] = []
@@ -338,7 +346,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     lo, hi = chosen.x - half, chosen.x + half
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
-        lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver)
+        lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver,
+                                    step_fraction=cfg.step_fraction)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
     r_after = residuals(rep_test, [chosen.combo.inputs(chosen.x, tr_test)])[0]
     per_joint_after = np.sqrt(np.sum(r_after**2, axis=(0, 1)) / rep_test.mask.sum())
@@ -460,7 +469,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
         if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
             bases.append(c)
     names = ref.log.joint_names
-    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver)
+    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction)
     pairs: list[tuple[Candidate, Effect]] = []
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
