@@ -11,7 +11,7 @@ import pytest
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
-from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals
+from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
@@ -372,8 +372,23 @@ def test_fitted_parameters_at_their_bounds_are_flagged(tmp_path):
     assert param["at_bound"] is False  # 20 ms, inside the delay's range
     bounded = fx.Param("x", 0.0, 0.0, 0.1, 1e-3, "m")
     assert at_bound(bounded, 0.1) and at_bound(bounded, 0.0005) and not at_bound(bounded, 0.05)
+    assert param["identified"] is True
     res.selected["parameters"][0]["at_bound"] = True
     assert "**at its bound**" in (write_report(res, tmp_path / "rep") / "report.md").read_text()
+    res.selected["parameters"][0]["identified"] = False
+    report = (write_report(res, tmp_path / "rep2") / "report.md").read_text()
+    assert "**not determined by the data**" in report and "**at its bound**" not in report
+
+
+def test_parameters_the_residual_does_not_see_are_undetermined():
+    """A parameter whose column is zero, and two that trade exactly, are undetermined; a
+    parameter that is merely small in its own units but seen across its range is not."""
+    rng = np.random.default_rng(0)
+    a, b, c = rng.normal(size=(3, 50))
+    jac = np.stack([a, np.zeros(50), b, -2.0 * b, 1e-4 * c])
+    span = np.array([1.0, 1.0, 1.0, 0.5, 1e3])  # the last: tiny per unit, but over a wide range
+    assert undetermined(jac, span).tolist() == [False, True, True, True, False]
+    assert not undetermined(np.stack([a, b]), np.ones(2)).any()
 
 
 def test_a_delay_on_one_drive_is_found_on_that_drive():
@@ -477,6 +492,9 @@ def test_a_payload_on_a_stamping_leg_is_fitted_through_the_costs_roughness(seed:
     assert coarse.train_gap <= truth_gap
     assert abs(coarse.x[0] - 0.3) < 0.05 and abs(coarse.x[1] - 0.15) < 0.04
     assert fine.train_gap > 1.2 * truth_gap
+    # the offset along the hinge axis changes no torque of the planar leg: no interval for it
+    half = Fitter(rep).confidence(combo, coarse.x)
+    assert np.isinf(half[2]) and np.isfinite(half[[0, 1, 3]]).all()
 
 
 def test_bench_draws_two_effects_on_two_joints():

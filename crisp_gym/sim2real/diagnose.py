@@ -343,19 +343,24 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     runner = next((c for c in ranked[1:] if c.combo.family != best.combo.family), None)
     chosen = selected or best
     half = fitter.confidence(chosen.combo, chosen.x)
+    identified = np.isfinite(half)
     lo, hi = chosen.x - half, chosen.x + half
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
         lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver,
                                     step_fraction=cfg.step_fraction)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
+    # a parameter the data do not determine: any value in its range
+    lo = np.where(identified, lo, [p.lo for p in chosen.combo.params])
+    hi = np.where(identified, hi, [p.hi for p in chosen.combo.params])
     r_after = residuals(rep_test, [chosen.combo.inputs(chosen.x, tr_test)])[0]
     per_joint_after = np.sqrt(np.sum(r_after**2, axis=(0, 1)) / rep_test.mask.sum())
     summary = {
         "effect": chosen.combo.label, "family": chosen.combo.family,
         "parameters": [{"name": p.name, "value": float(v), "ci95": [float(a), float(b)], "unit": p.unit,
-                        "effect": e.label, "at_bound": at_bound(p, float(v))}
-                       for (p, v, a, b, e) in zip(chosen.combo.params, chosen.x, lo, hi, _owners(chosen.combo))],
+                        "effect": e.label, "at_bound": at_bound(p, float(v)), "identified": bool(ok)}
+                       for (p, v, a, b, e, ok) in zip(chosen.combo.params, chosen.x, lo, hi, _owners(chosen.combo),
+                                                      identified)],
         "ci_method": ci_method,
         "gap_train": chosen.train_gap, "gap_heldout": chosen.heldout_gap,
         "margin_over_runner_up": (None if runner is None else float(runner.score / chosen.score - 1.0)),

@@ -325,8 +325,10 @@ class Fitter:
 
     def confidence(self, combo: Combo, x: np.ndarray, z: float = 1.96) -> np.ndarray:
         """Half-widths of the ``z``-sigma confidence intervals of ``x`` (sandwich
-        covariance, clustered by replay window)."""
+        covariance, clustered by replay window); infinite for the parameters the windows do
+        not determine (:func:`undetermined`), to which the pseudo-inverse gives none."""
         params = combo.params
+        lo = np.array([p.lo for p in params])
         hi = np.array([p.hi for p in params])
         step = np.array([p.step for p in params])
         h = np.where(x + step <= hi, step, -step)
@@ -338,4 +340,15 @@ class Fitter:
         scores = np.einsum("pwtj,wtj->wp", jac, r)
         meat = scores.T @ scores
         cov = bread @ meat @ bread
-        return z * np.sqrt(np.maximum(np.diag(cov), 0.0))
+        half = z * np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return np.where(undetermined(flat, hi - lo), np.inf, half)
+
+
+def undetermined(jac: np.ndarray, span: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """Which parameters the residual does not determine, from its Jacobian ``jac`` (P, m) and the
+    parameters' ranges ``span`` (P,): those with a share in a direction along which moving across
+    the whole range changes the residual by under ``tol`` of what the most telling direction's
+    does (a payload's offset along a planar leg's hinge axis; two parameters that trade exactly)."""
+    u, sv, _ = np.linalg.svd(jac * span[:, None], full_matrices=False)
+    null = u[:, sv <= tol * max(float(sv.max(initial=0.0)), 1e-300)]
+    return np.any(np.abs(null) > 1e-3, axis=1)

@@ -89,13 +89,17 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
     if sel:
         lines += ["## Parameters (95 % confidence)", "", "| effect | parameter | value | CI | unit |", "|---|---|---|---|---|"]
         for p in sel["parameters"]:
-            flag = " **at its bound**" if p.get("at_bound") else ""
+            flag = (" **not determined by the data**" if p.get("identified") is False
+                    else " **at its bound**" if p.get("at_bound") else "")
             lines.append(f"| {p['effect']} | {p['name']} | {_fmt(p['value'])}{flag} | [{_fmt(p['ci95'][0])}, "
                          f"{_fmt(p['ci95'][1])}] | {p['unit']} |")
         lines.append("")
-        if any(p.get("at_bound") for p in sel["parameters"]):
+        if any(p.get("at_bound") and p.get("identified") is not False for p in sel["parameters"]):
             lines += ["A parameter at its bound means the fit wanted to go further: the effect is likely not the "
                       "cause, or only part of it.", ""]
+        if any(p.get("identified") is False for p in sel["parameters"]):
+            lines += ["A parameter not determined by the data changes nothing these logs see (its interval is its "
+                      "whole range): any value of it fits as well.", ""]
     w = result.where
     lines += ["## Where the gap lies", "", f"Worst joint: **{w['worst_joint']}**.", "",
               "| joint | RMS pos (rad) | floor | RMS vel (rad/s) | lag real vs cmd (s) | lag sim vs cmd (s) | "
