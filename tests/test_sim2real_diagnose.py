@@ -385,9 +385,10 @@ def test_parameters_the_residual_does_not_see_are_undetermined():
     parameter that is merely small in its own units but seen across its range is not."""
     rng = np.random.default_rng(0)
     a, b, c = rng.normal(size=(3, 50))
-    jac = np.stack([a, np.zeros(50), b, -2.0 * b, 1e-4 * c])
-    span = np.array([1.0, 1.0, 1.0, 0.5, 1e3])  # the last: tiny per unit, but over a wide range
+    jac = np.stack([a, np.zeros(50), b, -2.0 * b, 1e-9 * c])
+    span = np.array([1.0, 1.0, 1.0, 0.5, 1e6])  # the last: tiny per unit, but over a wide range
     assert undetermined(jac, span).tolist() == [False, True, True, True, False]
+    assert undetermined(jac, np.ones(5))[4]  # over a unit range it is not seen
     assert not undetermined(np.stack([a, b]), np.ones(2)).any()
 
 
