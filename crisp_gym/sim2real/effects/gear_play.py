@@ -165,8 +165,8 @@ def rotor_track(half_width: float, tr: Trajectory, model: mujoco.MjModel, ctrl: 
         omega = np.where((force < lo) | (force > hi), clamped, free)
         theta = theta + dt * omega
         rel = theta - q[t]
-        end = np.abs(rel) > half_width  # at an end of the gap: the rotor moves with the joint
-        theta = np.where(end, q[t] + np.sign(rel) * half_width, theta)
-        omega = np.where(end, v[t], omega)
+        at_end = np.abs(rel) > half_width  # at an end of the gap: the rotor moves with the joint
+        theta = np.where(at_end, q[t] + np.sign(rel) * half_width, theta)
+        omega = np.where(at_end, v[t], omega)
         offset[t], speed[t] = theta - q[t], omega
     return offset, speed
