@@ -11,7 +11,7 @@ import pytest
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
-from crisp_gym.sim2real.fit import Combo, Fitter, gap_rms, residuals, undetermined
+from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
@@ -751,3 +751,30 @@ def test_held_out_blocks_of_one_log_find_its_delay():
     assert res.heldout == "the last 30 % of each of 3 equal parts of every log"
     assert res.verdict == "explained" and abs(res.selected["parameters"][0]["value"] - 0.03) < 0.003
     assert 0.67 < res.heldout_speed_ratio < 1.5  # the bench's commands do not change over the log
+
+
+def test_blockwise_derivatives_are_the_per_joint_diagonal_beside_full_columns() -> None:
+    """With ``blockwise`` (forward selection's screen), a per-joint effect beside a shared one
+    gets the derivatives it gets alone (one perturbed rollout, each parameter on its own joint,
+    the shared effect held where it is), and the shared effect its full column, as without."""
+    sc = scenario("arm", BenchConfig())
+    rng = np.random.default_rng(0)
+    t, u = commands(sc, rng)
+    tr = bind(synthesize(sc, {"family": "none"}, t, u, 1.0, rng), sc.model)
+    rep = Replayer([tr], make_windows([tr], 0.5))
+    damping, friction = fx.ViscousDamping(per_joint=True), fx.CoulombFriction()
+    combo = Combo((damping, friction), tr)
+    n = len(tr.log.joint_names)
+    x = np.concatenate([np.full(n, 0.3), [0.1]]) * np.array([p.hi for p in combo.params])
+    hi = np.array([p.hi for p in combo.params])
+    step = 0.03 * hi
+    r = residuals(rep, [combo.inputs(x, [tr])])[0]
+    blockwise, full = Fitter(rep, blockwise=True), Fitter(rep)
+    jac = blockwise._jacobian(combo, x, r, None, step, hi)
+    assert blockwise.rollouts == 2 * len(rep.windows)
+    np.testing.assert_array_equal(jac[n], full._jacobian(combo, x, r, None, step, hi)[n])
+    alone = Combo((damping, Frozen(friction, x[n:])), tr)
+    diagonal = full._jacobian(alone, x[:n], r, np.arange(n), step[:n], hi[:n])  # (nwin, size-1, n)
+    for j in range(n):
+        np.testing.assert_array_equal(jac[j, ..., j], diagonal[..., j])
+        assert not np.delete(jac[j], j, axis=-1).any()

@@ -3,8 +3,8 @@
 Every candidate effect is fitted on training windows and ranked by the gap it leaves on
 held-out windows (other logs, or the last part of each log), with a penalty per parameter so
 that a richer model must earn its keep. Two effects together come from forward selection
-(the best effect held at its fit, every other one fitted on top of it and judged on the
-held-out windows, the best of those pairs then fitted jointly), and on multi-joint logs from
+(every other effect fitted together with the best one for a few iterations and judged on the
+held-out windows, the best of those pairs then fitted fully), and on multi-joint logs from
 a per-joint mixture (each joint's best per-joint family, confined to those joints). The verdict compares
 gaps with the *noise floor*: the gap this same pipeline measures on a log that the model
 itself produced, with the log's own measurement noise. A log whose gap is at the floor
@@ -46,7 +46,7 @@ class DiagnoseConfig:
             families) and screens every other effect on top of it.
         pairs: forward selection fits this many of the best screened pairs jointly.
         screen_iter: Levenberg-Marquardt iterations of each screening fit (an effect fitted
-            on top of the best one held fixed, from its own single fit).
+            together with one of the best, both from their single fits).
         later_base_partners: the bases after the best one screen only this many of the best
             single effects on top of them (the best base screens every one): it keeps a
             30 s, 12-joint log within two minutes.
@@ -459,11 +459,12 @@ def _refinements(effects: list[Effect], singles: list[Candidate], ref: Trajector
 def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
                    cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
     """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
-    gap, distinct families) is held at its fit, and every single effect of another family (for
+    gap, distinct families) is taken at its fit, and every single effect of another family (for
     the bases after the best, the ``cfg.later_base_partners`` best ones) is fitted on top of it
-    for a few iterations, from its own single fit (the screen: as cheap as
-    one single fit, and the second effect no longer has to soak up the first, as it does when
-    fitted alone); so are the library's effects confined to the joint the held effect leaves
+    for a few iterations, both effects free, from their single fits (the screen: per-joint
+    effects' derivatives blockwise, so a screen costs about two single fits; the new effect no
+    longer has to soak up the base, as it does when fitted alone, and the base gives back what it
+    soaked up of the new one, as a base held fixed cannot); so are the library's effects confined to the joint the held effect leaves
     worst, when that is not the joint the singles were confined to (a second effect on another
     joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out gaps are then
     fitted jointly. More than one base, because an effect fitted alone may stand in for a
@@ -474,12 +475,12 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
         if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
             bases.append(c)
     names = ref.log.joint_names
-    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction)
-    pairs: list[tuple[Candidate, Effect]] = []
+    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction,
+                    blockwise=True)
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
     for i, base in enumerate(bases):
-        held = Frozen(base.combo.effects[0], base.x)
+        first = base.combo.effects[0]
         pool = ranked if i == 0 else ranked[:cfg.later_base_partners]
         partners: list[tuple[Effect, list[np.ndarray] | None]] = [(c.combo.effects[0], [c.x]) for c in pool]
         worst = names[int(np.argmax(base.heldout_per_joint**2 - floor_j**2))] if len(names) > 1 else focus
@@ -491,20 +492,17 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
             if effect.family == base.combo.family or key in seen:
                 continue
             seen.add(key)
-            combo = Combo((held, effect), ref)
+            combo = Combo((first, effect), ref)
             try:
-                res = screen.fit(combo, start)
+                res = screen.fit(combo, [np.concatenate([base.x, s]) for s in start or effect.starts(ref)])
             except CannotApply:
                 continue
-            pairs.append((base, effect))
             screened.append(Candidate(combo, res.x, res.train_gap))
     fitter.rollouts += screen.rollouts
     _evaluate(rep_test, screened)
     out = []
     for k in np.argsort([c.heldout_gap for c in screened])[:cfg.pairs]:
-        base, effect = pairs[k]
-        combo = Combo(base.combo.effects + (effect,), ref)
-        out.append(_fit(fitter, combo, [np.concatenate([base.x, screened[k].x])]))
+        out.append(_fit(fitter, screened[k].combo, [screened[k].x]))
     return out
 
 

@@ -172,13 +172,17 @@ class Fitter:
     """Levenberg-Marquardt over batched replays of a fixed set of windows."""
 
     def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2,
-                 solver: Solver = "mujoco", step_fraction: float = 0.03) -> None:
+                 solver: Solver = "mujoco", step_fraction: float = 0.03, blockwise: bool = False) -> None:
         """``restarts``: fresh-damping restarts of the batched solver after it stops.
         ``step_fraction``: each parameter's finite-difference step is at least this fraction
         of its range. Contacts (a foot's impacts, an end stop) make a replay's cost rugged on
         fine scales: on a stamping leg the training gap moves by 5 %, and not monotonically,
         when a payload's offset moves by 1 mm. A secant across a few per cent of the range
-        follows the cost's slope where a fine step reads its roughness and stalls."""
+        follows the cost's slope where a fine step reads its roughness and stalls.
+        ``blockwise``: beside other effects, too, a per-joint effect's derivatives come from
+        one perturbed rollout, each parameter's on its own joint only (as they do when every
+        fitted effect is per-joint): the cross-joint terms are dropped, and the Jacobian of a
+        per-joint effect beside another costs two rollouts, not one per parameter."""
         if solver not in get_args(Solver):
             raise ValueError(f"unknown solver {solver!r}; expected one of {get_args(Solver)}")
         if not 0.0 <= step_fraction < 1.0:
@@ -188,6 +192,7 @@ class Fitter:
         self.restarts = restarts
         self.solver = solver
         self.step_fraction = step_fraction
+        self.blockwise = blockwise
         self.rollouts = 0
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
@@ -207,6 +212,7 @@ class Fitter:
         return cols if len(cols) == len(combo.params) and len(np.unique(cols)) == len(cols) else None
 
     def fit(self, combo: Combo, starts: list[np.ndarray] | None = None) -> FitResult:
+        """Fit ``combo`` from the best of ``starts`` (default: its own multi-start grid)."""
         params = combo.params
         lo = np.array([p.lo for p in params])
         hi = np.array([p.hi for p in params])
@@ -234,13 +240,37 @@ class Fitter:
                   step: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Forward differences of the residual ``r`` at ``x``, by steps of ``step`` (backward at
         the upper bound): (nwin, size-1, P) on the parameters' own columns ``cols`` when each
-        acts on one joint (one perturbed rollout), else (P, nwin, size-1, n)."""
-        h = np.where(x + step <= hi, step, -step)
+        acts on one joint (one perturbed rollout), else (P, nwin, size-1, n), with each
+        :meth:`_blocks` block's from one perturbed rollout."""
+        h = _signed_steps(x, step, hi)
         if cols is not None:
             rp = self._res(combo, [x + h])[0]
             return (rp[..., cols] - r[..., cols]) / h
-        rp = self._res(combo, [x + h[i] * np.eye(len(x))[i] for i in range(len(x))])
-        return (rp - r[None]) / h[:, None, None, None]
+        blocks = self._blocks(combo)
+        points = [x + np.where(np.isin(np.arange(len(x)), idx), h, 0.0) for idx, _ in blocks]
+        jac = np.zeros((len(x),) + r.shape)
+        for (idx, own), rp in zip(blocks, self._res(combo, points)):
+            if own is None:
+                jac[idx[0]] = (rp - r) / h[idx[0]]
+            else:
+                for i, c in zip(idx, own):
+                    jac[i, ..., c] = (rp[..., c] - r[..., c]) / h[i]
+        return jac
+
+    def _blocks(self, combo: Combo) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """The parameters perturbed together by :meth:`_jacobian`, each block with the residual
+        columns its parameters act on: with ``blockwise``, a per-joint effect's parameters (on
+        joints of their own) form one block; every other parameter is a block alone, with every
+        column."""
+        offsets = np.cumsum([0] + combo.sizes[:-1])
+        blocks: list[tuple[np.ndarray, np.ndarray | None]] = []
+        for e, n, at in zip(combo.effects, combo.sizes, offsets):
+            own = e.columns(combo.ref) if self.blockwise and e.per_joint else None
+            if own is not None and len(own) == n and len(np.unique(own)) == n:
+                blocks.append((at + np.arange(n), own))
+            else:
+                blocks += [(np.array([at + i]), None) for i in range(n)]
+        return blocks
 
     def _descend(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray, hi: np.ndarray,
                  step: np.ndarray, patience: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
@@ -330,8 +360,7 @@ class Fitter:
         params = combo.params
         lo = np.array([p.lo for p in params])
         hi = np.array([p.hi for p in params])
-        step = np.array([p.step for p in params])
-        h = np.where(x + step <= hi, step, -step)
+        h = _signed_steps(x, np.array([p.step for p in params]), hi)
         r_all = self._res(combo, [x] + [x + h[i] * np.eye(len(x))[i] for i in range(len(x))])
         r = r_all[0]
         jac = (r_all[1:] - r[None]) / h[:, None, None, None]  # (P, nwin, size-1, n)
@@ -342,6 +371,11 @@ class Fitter:
         cov = bread @ meat @ bread
         half = z * np.sqrt(np.maximum(np.diag(cov), 0.0))
         return np.where(undetermined(flat, hi - lo), np.inf, half)
+
+
+def _signed_steps(x: np.ndarray, step: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``step``, negated where a forward step would leave the upper bound ``hi``."""
+    return np.where(x + step <= hi, step, -step)
 
 
 def undetermined(jac: np.ndarray, span: np.ndarray, tol: float = 1e-6) -> np.ndarray:
