@@ -68,12 +68,13 @@ class DiagnoseConfig:
         families: restrict the library to these effect families (empty: all).
         tolerance: a candidate with fewer parameters replaces the best one when their
             squared held-out gaps differ by less than tolerance x the squared floor
-            (the larger of the nominal model's and the best candidate's): below the noise,
+            (the larger of the nominal model's and the best candidate's median draws): below the noise,
             a richer model has not earned its parameters.
         bootstrap: refits for the parametric-bootstrap intervals of an explained winner
             (fewer than 3: the sandwich covariance, which ignores the bias of replay fits).
         floor_draws: noise draws of the noise floors: the median draw is the nominal
-            model's floor (for "none"), the largest the best candidate's (for "explained").
+            model's floor (for "none"), the largest the best candidate's (for "explained");
+            the best candidate's median draw sets the parsimony tolerance.
         show_progress: tqdm progress over the fits.
     """
 
@@ -171,14 +172,14 @@ def resynthesize(rep: Replayer, combo: Combo, x: np.ndarray, rng: np.random.Gene
     return trajs
 
 
-def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, draws: int = 5,
-                quantile: float = 0.5) -> np.ndarray:
-    """Per-joint windowed gap on the logs :func:`resynthesize` makes with the nominal model
-    (or ``candidate``'s): the gap this pipeline measures when the model is exactly right.
+def noise_floors(rep: Replayer, seed: int, candidate: Candidate | None = None, draws: int = 5) -> np.ndarray:
+    """Per-joint windowed gap (draws, J) on the logs :func:`resynthesize` makes with the nominal
+    model (or ``candidate``'s), one row per noise draw, from the smallest overall RMS to the
+    largest: the gap this pipeline measures when the model is exactly right.
 
     That gap is heavy-tailed (with contacts, one unlucky noise draw can make a window
-    diverge), so ``draws`` noise draws are made and the one at ``quantile`` of their
-    overall RMS kept (0.5: the median draw, 1: the largest)."""
+    diverge), so several draws are made: the median one (:func:`median_draw`) is the
+    typical floor, the last the largest the exact model produces."""
     combo = candidate.combo if candidate is not None else Combo((), rep.trajs[0])
     x = candidate.x if candidate is not None else np.zeros(0)
     floors = []
@@ -187,8 +188,17 @@ def noise_floor(rep: Replayer, seed: int, candidate: Candidate | None = None, dr
         srep = Replayer(trajs, rep.windows, rep.nthread)
         r = residuals(srep, [combo.inputs(x, trajs)])[0]
         floors.append(np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum()))
-    overall = [float(np.mean(f**2)) for f in floors]
-    return floors[int(np.argsort(overall)[round(quantile * (len(floors) - 1))])]
+    floors = np.array(floors)
+    return floors[np.argsort(np.mean(floors**2, axis=1))]
+
+
+def median_draw(floors: np.ndarray) -> np.ndarray:
+    """The median row of :func:`noise_floors` (the lower middle one of an even count)."""
+    return floors[(len(floors) - 1) // 2]
+
+
+def _overall(floor_j: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(floor_j**2)))
 
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
@@ -298,8 +308,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     r0_test = residuals(rep_test, [nominal_inputs(tr_test)])[0]
     r0_train = residuals(rep_train, [nominal_inputs(tr_train)])[0]
     gap_before = gap_rms(r0_test, rep_test.mask)
-    floor_j = noise_floor(rep_test, cfg.seed, draws=cfg.floor_draws)
-    floor = float(np.sqrt(np.mean(floor_j**2)))
+    floor_j = median_draw(noise_floors(rep_test, cfg.seed, draws=cfg.floor_draws))
+    floor = _overall(floor_j)
 
     rep_all = Replayer(tr_train + tr_test, _concat_windows(rep_train, rep_test), cfg.nthread)
     r0_all = np.concatenate([r0_train, r0_test])
@@ -333,11 +343,14 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
 
     # The floor of the best-scoring candidate itself: where its dynamics have sharper events
     # than the nominal model's (impacts, stick-slip), even the exact model replays less well.
-    # "Explained" asks whether the gap is one the exact model can produce (the largest
-    # draw); gaps that differ by less than that floor do not tell candidates apart either,
-    # so it also sets the parsimony tolerance, and the simpler model inherits it.
-    floor_best = float(np.sqrt(np.mean(noise_floor(rep_test, cfg.seed, ranked[0], cfg.floor_draws, 1.0) ** 2)))
-    ranked = _parsimonious_first(ranked, max(floor, floor_best), cfg.tolerance)
+    # "Explained" asks whether the gap is one the exact model can produce (its largest
+    # draw). Gaps that differ by less than its typical floor (the median draw) do not tell
+    # candidates apart: that sets the parsimony tolerance, and the simpler model inherits it.
+    # (The largest draw there let one diverging window hand a close match's place to a
+    # simpler candidate twice its gap.)
+    best_floors = noise_floors(rep_test, cfg.seed, ranked[0], cfg.floor_draws)
+    floor_best = _overall(best_floors[-1])
+    ranked = _parsimonious_first(ranked, max(floor, _overall(median_draw(best_floors))), cfg.tolerance)
     verdict, selected = _verdict(ranked, gap_before, floor, floor_best, cfg)
     best = ranked[0]
     runner = next((c for c in ranked[1:] if c.combo.family != best.combo.family), None)
