@@ -10,7 +10,8 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
-from crisp_gym.sim2real.diagnose import DiagnoseConfig, at_bound, diagnose, speed_ratio
+from crisp_gym.sim2real.diagnose import (DiagnoseConfig, at_bound, diagnose, median_draw, noise_floors,
+                                         speed_ratio)
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -778,3 +779,18 @@ def test_blockwise_derivatives_are_the_per_joint_diagonal_beside_full_columns() 
     for j in range(n):
         np.testing.assert_array_equal(jac[j, ..., j], diagonal[..., j])
         assert not np.delete(jac[j], j, axis=-1).any()
+
+
+def test_noise_floor_draws_are_ordered_and_the_median_one_is_the_reported_floor() -> None:
+    """The diagnosis reports the median of its noise draws as the nominal model's floor; the
+    draws come ordered by their overall RMS, so the last one is the largest gap the exact
+    model produced."""
+    sc, train, test = _case({"family": "none"}, seed=4)
+    tr = [bind(test, sc.model)]
+    rep = Replayer(tr, make_windows(tr, CFG.window_s))
+    floors = noise_floors(rep, CFG.seed, draws=CFG.floor_draws)
+    overall = np.sqrt(np.mean(floors**2, axis=1))
+    assert floors.shape == (CFG.floor_draws, 1) and np.all(np.diff(overall) >= 0)
+    np.testing.assert_array_equal(median_draw(floors), floors[2])
+    res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
+    assert res.noise_floor == pytest.approx(overall[2], rel=1e-12)

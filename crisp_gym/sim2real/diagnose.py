@@ -472,16 +472,16 @@ def _refinements(effects: list[Effect], singles: list[Candidate], ref: Trajector
 def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
                    cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
     """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
-    gap, distinct families) is taken at its fit, and every single effect of another family (for
-    the bases after the best, the ``cfg.later_base_partners`` best ones) is fitted on top of it
-    for a few iterations, both effects free, from their single fits (the screen: per-joint
-    effects' derivatives blockwise, so a screen costs about two single fits; the new effect no
-    longer has to soak up the base, as it does when fitted alone, and the base gives back what it
-    soaked up of the new one, as a base held fixed cannot); so are the library's effects confined to the joint the held effect leaves
-    worst, when that is not the joint the singles were confined to (a second effect on another
-    joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out gaps are then
-    fitted jointly. More than one base, because an effect fitted alone may stand in for a
-    relative of the true one (a sensor delay for an actuator delay beside friction)."""
+    gap, distinct families) is a base, and every single effect of another family (for the bases
+    after the best, the ``cfg.later_base_partners`` best ones) is fitted together with it for a
+    few iterations, both from their single fits (the screen: per-joint effects' derivatives
+    blockwise, so a screen costs about two single fits). The new effect no longer has to soak up
+    the base, as it does when fitted alone, and the base gives back what it soaked up of the new
+    one, as a base held at its fit cannot. So are the library's effects confined to the joint
+    the base leaves worst, when that is not the joint the singles were confined to (a second
+    effect on another joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out
+    gaps are then fitted fully. More than one base, because an effect fitted alone may stand in
+    for a relative of the true one (a sensor delay for an actuator delay beside friction)."""
     ranked = sorted(singles, key=lambda c: c.heldout_gap)
     bases: list[Candidate] = []
     for c in ranked:
