@@ -88,7 +88,8 @@ class Combo:
 
 class Frozen(Effect):
     """An effect held at fitted parameters ``x``: it acts as ``effect`` does but has no parameters,
-    so that forward selection can fit the next effect on top of it at the cost of a single fit."""
+    so that a combination can be replayed, or another effect fitted, with that part held (each
+    part's share of what a combination removes)."""
 
     def __init__(self, effect: Effect, x: np.ndarray) -> None:
         super().__init__(effect.joints, per_joint=False)
