@@ -361,10 +361,9 @@ class Fitter:
         params = combo.params
         lo = np.array([p.lo for p in params])
         hi = np.array([p.hi for p in params])
-        h = _signed_steps(x, np.array([p.step for p in params]), hi)
-        r_all = self._res(combo, [x] + [x + h[i] * np.eye(len(x))[i] for i in range(len(x))])
-        r = r_all[0]
-        jac = (r_all[1:] - r[None]) / h[:, None, None, None]  # (P, nwin, size-1, n)
+        r = self._res(combo, [x])[0]
+        # at the parameters' own (fine) steps
+        jac = self._jacobian(combo, x, r, None, np.array([p.step for p in params]), hi)  # (P, nwin, size-1, n)
         flat = jac.reshape(len(x), -1)
         bread = np.linalg.pinv(flat @ flat.T)
         scores = np.einsum("pwtj,wtj->wp", jac, r)
