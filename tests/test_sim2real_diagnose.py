@@ -10,8 +10,8 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
-from crisp_gym.sim2real.diagnose import (DiagnoseConfig, at_bound, diagnose, median_draw, noise_floors,
-                                         speed_ratio)
+from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _per_joint_mixture, at_bound, diagnose,
+                                         median_draw, noise_floors, speed_ratio)
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -643,17 +643,53 @@ def test_gear_play_needs_the_models_spec() -> None:
         Combo((fx.GearPlay(),), replace(tr, spec=None)).inputs(np.array([0.01]), [replace(tr, spec=None)])
 
 
-def test_gear_play_is_left_out_where_no_actuator_drives_the_joint() -> None:
-    """The rail leg's slide is logged but not driven: no gear play confined to it is a candidate
-    (a screen confined to that joint once crashed the diagnosis on it), the shared one is."""
+def _rail_leg_template():
     from crisp_gym.sim2real.bench import _template
 
     sc = scenario("rail_leg", BenchConfig())
     t, u = commands(sc, np.random.default_rng(0))
-    tr = _template(sc, t, u)
-    labels = [e.label for e in fx.library(tr, focus="rail")]
+    return _template(sc, t, u)
+
+
+def test_actuator_effects_leave_out_the_joints_no_actuator_drives() -> None:
+    """The rail leg's slide is logged but not driven. Effects that act through the actuators
+    (gains, limits, delays, play) get no candidate confined to it (a gear-play screen confined
+    to it once crashed the diagnosis) and, per joint, no parameter for it (one there took a
+    meaningless value and counted in the parameter penalty); joint effects keep it."""
+    tr = _rail_leg_template()
+    library = fx.library(tr, focus="rail")
+    labels = [e.label for e in library]
     assert "gear_play[shared]" in labels and "coulomb_friction[rail]" in labels
-    assert "gear_play[rail]" not in labels
+    on_drives = [k for k in fx.EFFECT_TYPES if k.on_drives]
+    assert {k.name for k in on_drives} >= {"pd_gain_scale", "torque_saturation", "actuator_delay", "backlash"}
+    assert not [e for e in library if e.on_drives and e.joints == ("rail",)]
+    params = {e.label: [p.name for p in e.params(tr)] for e in library if e.per_joint}
+    assert params["pd_gain_scale[per-joint]"] == ["scale@hip", "scale@knee"]
+    assert params["actuator_delay[per-joint]"] == ["delay@hip", "delay@knee"]
+    assert params["viscous_damping[per-joint]"] == ["added@rail", "added@hip", "added@knee"]
+
+
+def test_per_joint_mixture_gives_each_joint_the_best_effect_with_a_parameter_there() -> None:
+    """Gains per joint win the hip, damping the knee; the rail, where the gain has no
+    parameter, goes to damping even though the gain's fit left the rail's gap smaller. The
+    mixture starts from each winner's fitted values on its joints."""
+    tr = _rail_leg_template()
+    gain = Candidate(Combo((fx.GainScale(per_joint=True),), tr), np.array([1.3, 0.7]), 0.0,
+                     heldout_per_joint=np.array([0.1, 0.1, 0.3]))
+    damping = Candidate(Combo((fx.ViscousDamping(per_joint=True),), tr), np.array([2.0, 3.0, 4.0]), 0.0,
+                        heldout_per_joint=np.array([0.2, 0.4, 0.2]))
+    seen = []
+
+    class Recorder:  # a fitter that returns its start, so that the mixture's composition shows
+        def fit(self, combo, starts):
+            seen.append((combo, starts))
+            return SimpleNamespace(x=starts[0], train_gap=0.0)
+
+    mixture = _per_joint_mixture([gain, damping], tr, Recorder())
+    assert [e.label for e in mixture.combo.effects] == ["pd_gain_scale[per-joint: hip]",
+                                                         "viscous_damping[per-joint: rail,knee]"]
+    np.testing.assert_array_equal(seen[0][1][0], [1.3, 2.0, 4.0])
+    assert _per_joint_mixture([gain], tr, Recorder()) is None
 
 
 def test_rotor_track_follows_the_simulated_rotor_closer_than_its_force_balance() -> None:

@@ -523,20 +523,28 @@ def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter
     """Per joint, the per-joint effect that leaves that joint's held-out gap smallest; those
     effects confined to their joints and fitted together, from their single fits (one
     parameter per joint, so the fit keeps its one-rollout diagonal Jacobian). ``None`` when one
-    family wins every joint (the per-joint effect itself is already a candidate)."""
+    family wins every joint (the per-joint effect itself is already a candidate). A joint is
+    won only by an effect with a parameter on it (actuator effects have none on unactuated
+    joints)."""
     names = ref.log.joint_names
-    per_joint = [c for c in singles if len(c.combo.effects) == 1 and c.combo.effects[0].per_joint
-                 and c.combo.effects[0].joints is None and c.nparam == len(names)]
+    scoped = [(c, c.combo.effects[0].columns(ref)) for c in singles if len(c.combo.effects) == 1
+              and c.combo.effects[0].per_joint and c.combo.effects[0].joints is None]
+    per_joint = [c for c, cols in scoped if c.nparam == len(cols)]  # one parameter per joint
+    own = [cols for c, cols in scoped if c.nparam == len(cols)]
     if len(per_joint) < 2:
         return None
-    choice = np.argmin([c.heldout_per_joint for c in per_joint], axis=0)
-    if len(set(choice.tolist())) < 2:
+    gaps = np.full((len(per_joint), len(names)), np.inf)
+    for k, (c, cols) in enumerate(zip(per_joint, own)):
+        gaps[k, cols] = c.heldout_per_joint[cols]
+    choice = np.where(np.isfinite(gaps.min(axis=0)), np.argmin(gaps, axis=0), -1)  # -1: no effect acts there
+    winners = sorted(set(choice.tolist()) - {-1})
+    if len(winners) < 2:
         return None
     effects, start = [], []
-    for f in sorted(set(choice.tolist())):
+    for f in winners:
         cols = np.flatnonzero(choice == f)
         effects.append(type(per_joint[f].combo.effects[0])(joints=tuple(names[c] for c in cols), per_joint=True))
-        start.append(per_joint[f].x[cols])
+        start.append(per_joint[f].x[np.searchsorted(own[f], cols)])
     return _fit(fitter, Combo(tuple(effects), ref), [np.concatenate(start)])
 
 

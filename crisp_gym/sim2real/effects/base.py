@@ -31,6 +31,12 @@ def joint_actuators(tr: Trajectory, cols: np.ndarray) -> list[np.ndarray]:
     return [np.flatnonzero(joint_trn & (m.actuator_trnid[:, 0] == j)) for j in jids]
 
 
+def driven_columns(tr: Trajectory) -> np.ndarray:
+    """Indices of the logged joints that an actuator drives directly."""
+    cols = np.arange(len(tr.log.joint_names))
+    return cols[[len(a) > 0 for a in joint_actuators(tr, cols)]]
+
+
 @dataclass
 class Signals:
     """Per-trajectory signals an effect may transform: fine-grid commands (T*nsub, nu)
@@ -46,7 +52,10 @@ class Effect:
 
     Scopes: every effect is tried shared by all joints; on multi-joint logs also with one
     parameter per joint (``per_joint_allowed``) and confined to the joint with the largest
-    gap (``per_joint_allowed`` or ``focus_allowed``). ``refine``: the number of best start
+    gap (``per_joint_allowed`` or ``focus_allowed``). ``on_drives``: the effect acts through the
+    actuators (their gains, limits, commands), so its joints are only those an actuator drives
+    directly: a per-joint variant has no parameter for an unactuated joint (a leg's rail), which
+    nothing it changes could move. ``refine``: the number of best start
     points the fit descends from, for effects with several local minima. ``refines``: the
     name of a simpler effect this one elaborates (gearbox friction contains load friction as
     a special case); the diagnosis fits it only where that one, in the same scope, ranks among
@@ -63,6 +72,7 @@ class Effect:
     adds_state = False  # replays on a model with parts the log's lacks (:meth:`extended_model`)
     per_joint_allowed = True
     focus_allowed = False
+    on_drives = False  # acts through the actuators: its joints are the driven ones
     refine = 1  # how many of the best start points are descended from (several local minima)
     refines: str | None = None  # the simpler effect this one elaborates (fitted only where that one ranks well)
 
@@ -79,11 +89,13 @@ class Effect:
 
     # -- targets -----------------------------------------------------------------------
     def columns(self, tr: Trajectory) -> np.ndarray:
-        """Indices of the target joints among the log's joints."""
+        """Indices of the target joints among the log's joints (of the driven ones only, for an
+        effect ``on_drives`` on every joint)."""
         names = tr.log.joint_names
-        if self.joints is None:
-            return np.arange(len(names))
-        return np.array([names.index(j) for j in self.joints], dtype=int)
+        if self.joints is not None:
+            return np.array([names.index(j) for j in self.joints], dtype=int)
+        cols = np.arange(len(names))
+        return driven_columns(tr) if self.on_drives else cols
 
     def values(self, x: np.ndarray, tr: Trajectory) -> np.ndarray:
         """One value per target joint: the shared parameter repeated, or one each."""
@@ -103,7 +115,8 @@ class Effect:
 
     # -- interface -----------------------------------------------------------------------
     def applicable(self, tr: Trajectory) -> bool:
-        return True
+        """Whether the effect can act on this log: one ``on_drives`` needs a driven target joint."""
+        return not self.on_drives or any(len(a) for a in joint_actuators(tr, self.columns(tr)))
 
     def params(self, tr: Trajectory) -> list[Param]:
         raise NotImplementedError

@@ -64,15 +64,12 @@ class GearPlay(Effect):
     :func:`rotor_track` has it.
     """
 
-    name, family, per_joint_allowed, focus_allowed = "gear_play", "backlash", False, True
+    name, family, per_joint_allowed, focus_allowed, on_drives = "gear_play", "backlash", False, True, True
     touches_model = adds_state = True
 
     def __init__(self, joints: tuple[str, ...] | None = None, per_joint: bool = False) -> None:
         super().__init__(joints, per_joint)
         self._extended: dict[int, tuple[mujoco.MjSpec, mujoco.MjModel, _Rotors]] = {}
-
-    def applicable(self, tr: Trajectory) -> bool:
-        return any(len(a) for a in joint_actuators(tr, self.columns(tr)))
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [HALF_WIDTH]
@@ -86,7 +83,7 @@ class GearPlay(Effect):
             raise CannotApply("gear play adds a rotor to the model: pass the model as an MjSpec")
         key = id(tr.spec)
         if key not in self._extended:
-            cols = [c for c, a in zip(self.columns(tr), joint_actuators(tr, self.columns(tr))) if len(a)]
+            cols = self.columns(tr)
             names = [tr.log.joint_names[c] for c in cols]
             armature = tr.model.dof_armature[tr.dadr[cols]]
             inertia = np.where(armature > 0, armature, _ROTOR_SHARE * inertia_scale(tr)[cols])

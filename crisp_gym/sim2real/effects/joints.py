@@ -73,7 +73,7 @@ class GainScale(Effect):
     """The actuator's whole PD output is off by a factor (torque constant, gear ratio,
     firmware gain units)."""
 
-    name, family, touches_model = "pd_gain_scale", "pd_gain", True
+    name, family, touches_model, on_drives = "pd_gain_scale", "pd_gain", True, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return self.expand([Param("scale", 1.0, 0.2, 4.0, 0.01, "")], tr)
@@ -94,7 +94,7 @@ class TorqueSaturation(Effect):
     """The actuator delivers at most ``limit`` (a fraction of the model's limit, or of
     a typical torque when the model has none): current limits, supply sag."""
 
-    name, family, touches_model = "torque_saturation", "torque_saturation", True
+    name, family, touches_model, on_drives = "torque_saturation", "torque_saturation", True, True
 
     def _reference(self, tr: Trajectory) -> np.ndarray:
         m = tr.model

@@ -29,7 +29,7 @@ class ActuatorDelay(Effect):
     them, only the drives of one joint (one slow servo on a bus), or each joint's drives with
     a delay of their own."""
 
-    name, family, focus_allowed = "actuator_delay", "delay", True
+    name, family, focus_allowed, on_drives = "actuator_delay", "delay", True, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return self.expand([Param("delay", 0.01, 0.0, 0.15, 0.25 * tr.log.dt, "s")], tr)
@@ -76,7 +76,7 @@ class Backlash(Effect):
     has crossed a dead band of half-width ``gap`` (a play operator on the command), on every
     drive or (confined to a joint) on that joint's drives only."""
 
-    name, family, per_joint_allowed, focus_allowed = "backlash", "backlash", False, True
+    name, family, per_joint_allowed, focus_allowed, on_drives = "backlash", "backlash", False, True, True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [HALF_WIDTH]
