@@ -28,12 +28,15 @@ def main() -> None:
     ap.add_argument("--p-compound", type=float, default=0.15, help="share of two-effect cases (multi-joint models)")
     ap.add_argument("--solver", choices=get_args(Solver), default="mujoco",
                     help="the fits' Levenberg-Marquardt (DiagnoseConfig.solver)")
+    ap.add_argument("--robust-scale", type=float, default=0.0,
+                    help="soft-L1 window loss at this many noise floors (DiagnoseConfig.robust_scale; 0: off)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()
     cfg = BenchConfig(cases=args.cases, seed=args.seed, noise_scales=tuple(args.noise), models=tuple(args.models),
                       families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside,
                       p_compound=args.p_compound)
-    s = run_bench(cfg, args.out, DiagnoseConfig(show_progress=False, solver=args.solver))
+    s = run_bench(cfg, args.out, DiagnoseConfig(show_progress=False, solver=args.solver,
+                                                   robust_scale=args.robust_scale))
     print("| metric | value |\n|---|---|")
     for k, v in s.items():
         if not isinstance(v, dict):

@@ -60,6 +60,10 @@ class DiagnoseConfig:
         step_fraction: the fits' finite-difference steps are at least this fraction of each
             parameter's range (:class:`~crisp_gym.sim2real.fit.Fitter`): contacts make the
             replay's cost rugged on finer scales.
+        robust_scale: if positive, the fits count each replay window by the soft-L1 loss of its
+            mean square, at this many nominal noise floors (:class:`~crisp_gym.sim2real.fit.Fitter`):
+            a window whose replay diverges (or whose log jumps) counts by its RMS, not its square.
+            0 (the default): plain least squares; ``docs/sim2real.md`` says when to use it.
         solver: the fits' Levenberg-Marquardt (:data:`~crisp_gym.sim2real.fit.Solver`):
             ``"mujoco"`` (``mujoco.minimize.least_squares``, 40 % fewer rollouts over the
             bench's models, ``benchmarks/gap_lm.py``) or ``"batched"`` (the project's own).
@@ -91,6 +95,7 @@ class DiagnoseConfig:
     explained_factor: float = 1.6
     max_iter: int = 15
     step_fraction: float = 0.03
+    robust_scale: float = 0.0
     solver: Solver = "mujoco"
     nthread: int = 2
     seed: int = 0
@@ -107,6 +112,8 @@ class DiagnoseConfig:
                              f"{self.holdout_fraction} and {self.holdout_blocks}")
         if not 0.0 <= self.step_fraction < 1.0:
             raise ValueError(f"step_fraction must be in [0, 1), got {self.step_fraction}")
+        if self.robust_scale < 0:
+            raise ValueError(f"robust_scale must be non-negative, got {self.robust_scale}")
 
 
 @dataclass
@@ -203,7 +210,7 @@ def _overall(floor_j: np.ndarray) -> float:
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
                        max_iter: int = 3, solver: Solver = "mujoco",
-                       step_fraction: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+                       step_fraction: float = 0.03, robust_scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
     training logs it resynthesises itself (:func:`resynthesize`). The refits' mean offset
     is a bias of replay fits (noisy initial states and velocities), which the sandwich
@@ -217,7 +224,7 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
         fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver,
-                        step_fraction=step_fraction)
+                        step_fraction=step_fraction, robust_scale=robust_scale)
         refits.append(fitter.fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
@@ -317,7 +324,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     train_rms = np.sqrt(np.sum(r0_train**2, axis=(0, 1)) / rep_train.mask.sum())
     focus = names[int(np.argmax(train_rms**2 - floor_j**2))]
 
-    fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver, step_fraction=cfg.step_fraction)
+    fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver, step_fraction=cfg.step_fraction,
+                    robust_scale=cfg.robust_scale * floor or None)
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
     skipped: list[dict[str, str]] = []
@@ -361,7 +369,7 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
         lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver,
-                                    step_fraction=cfg.step_fraction)
+                                    step_fraction=cfg.step_fraction, robust_scale=fitter.robust_scale)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
     # a parameter the data do not determine: any value in its range
     lo = np.where(identified, lo, [p.lo for p in chosen.combo.params])
@@ -489,7 +497,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
             bases.append(c)
     names = ref.log.joint_names
     screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction,
-                    blockwise=True)
+                    blockwise=True, robust_scale=fitter.robust_scale)
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
     for i, base in enumerate(bases):

@@ -1,6 +1,7 @@
 """Fit the parameters of an effect (or a combination) to replay windows.
 
-Least squares on the windowed position residual by Levenberg-Marquardt, so that every
+Least squares on the windowed position residual (each window counted by a soft-L1 loss above
+the noise, so that one diverging replay does not steer a fit) by Levenberg-Marquardt, so that every
 Jacobian (one perturbed model per parameter) is one batched rollout. Parameters that act on
 one joint each get a diagonal Jacobian from a single perturbed rollout. Two solvers share
 that Jacobian: MuJoCo's ``mujoco.minimize.least_squares`` (one trial step per rollout, its
@@ -146,6 +147,16 @@ def residuals(replayer: Replayer, inputs: list[SimInputs]) -> np.ndarray:
     return out * replayer.mask[None, :, :, None]
 
 
+def soft_l1_windows(r: np.ndarray, mask: np.ndarray, scale: float) -> np.ndarray:
+    """Residuals (..., nwin, size - 1, n) rescaled window by window so that each window's sum of
+    squares becomes ``count · scale² · ρ(e)``, where ``e`` is its mean square over ``scale²``
+    and ``ρ(e) = 2 (√(1 + e) − 1)`` the soft-L1 loss (``e`` for small ``e``, ``2 √e`` for large)."""
+    count = mask.sum(axis=1) * r.shape[-1] * scale**2
+    e = np.sum(r**2, axis=(-2, -1)) / np.maximum(count, 1e-300)
+    weight = np.where(e > 1e-12, 2 * (np.sqrt(1 + e) - 1) / np.maximum(e, 1e-12), 1.0)
+    return r * np.sqrt(weight)[..., None, None]
+
+
 def gap_rms(r: np.ndarray, mask: np.ndarray) -> float:
     """Root mean square of a residual over the samples inside windows."""
     return float(np.sqrt(np.sum(r**2) / (mask.sum() * r.shape[-1])))
@@ -173,7 +184,8 @@ class Fitter:
     """Levenberg-Marquardt over batched replays of a fixed set of windows."""
 
     def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2,
-                 solver: Solver = "mujoco", step_fraction: float = 0.03, blockwise: bool = False) -> None:
+                 solver: Solver = "mujoco", step_fraction: float = 0.03, blockwise: bool = False,
+                 robust_scale: float | None = None) -> None:
         """``restarts``: fresh-damping restarts of the batched solver after it stops.
         ``step_fraction``: each parameter's finite-difference step is at least this fraction
         of its range. Contacts (a foot's impacts, an end stop) make a replay's cost rugged on
@@ -183,22 +195,42 @@ class Fitter:
         ``blockwise``: beside other effects, too, a per-joint effect's derivatives come from
         one perturbed rollout, each parameter's on its own joint only (as they do when every
         fitted effect is per-joint): the cross-joint terms are dropped, and the Jacobian of a
-        per-joint effect beside another costs two rollouts, not one per parameter."""
+        per-joint effect beside another costs two rollouts, not one per parameter.
+        ``robust_scale`` (rad): each window enters the cost by the soft-L1 loss of its mean
+        square over ``robust_scale²`` (:func:`soft_l1_windows`), quadratic below that scale and
+        linear in the window's RMS above it. Where a replay is chaotic (a stamping foot), one
+        window whose contact events a small change flips can hold most of the squared residual,
+        and least squares then trades every other window's fit for it; counted by its RMS it
+        steers the fit less. ``None``: plain least squares."""
         if solver not in get_args(Solver):
             raise ValueError(f"unknown solver {solver!r}; expected one of {get_args(Solver)}")
         if not 0.0 <= step_fraction < 1.0:
             raise ValueError(f"step_fraction must be in [0, 1), got {step_fraction}")
+        if robust_scale is not None and not robust_scale > 0:
+            raise ValueError(f"robust_scale must be positive (or None), got {robust_scale}")
         self.rep = replayer
         self.max_iter = max_iter
         self.restarts = restarts
         self.solver = solver
         self.step_fraction = step_fraction
         self.blockwise = blockwise
+        self.robust_scale = robust_scale
         self.rollouts = 0
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
+        """The residuals the fit minimises the squares of, at each of ``xs``."""
         self.rollouts += len(xs) * len(self.rep.windows)
-        return residuals(self.rep, [combo.inputs(x, self.rep.trajs) for x in xs])
+        r = residuals(self.rep, [combo.inputs(x, self.rep.trajs) for x in xs])
+        return r if self.robust_scale is None else soft_l1_windows(r, self.rep.mask, self.robust_scale)
+
+    def _gap(self, r: np.ndarray) -> float:
+        """The plain RMS gap of one fitted residual ``r`` (robust ones undone window by window)."""
+        if self.robust_scale is None:
+            return gap_rms(r, self.rep.mask)
+        count = self.rep.mask.sum(axis=1) * r.shape[-1] * self.robust_scale**2
+        loss = np.sum(r**2, axis=(1, 2)) / np.maximum(count, 1e-300)
+        squares = ((loss / 2 + 1) ** 2 - 1) * count  # the inverse of the soft-L1 loss
+        return float(np.sqrt(np.sum(squares) / (self.rep.mask.sum() * r.shape[-1])))
 
     def _cost(self, r: np.ndarray) -> np.ndarray:
         return np.sum(r.reshape(r.shape[0], -1) ** 2, axis=1)
@@ -235,7 +267,7 @@ class Fitter:
             if best is None or cost < best[2]:
                 best = (x, r, cost)
         x, r, _ = best
-        return FitResult(x=x, train_gap=gap_rms(r, self.rep.mask), rollouts=self.rollouts - before)
+        return FitResult(x=x, train_gap=self._gap(r), rollouts=self.rollouts - before)
 
     def _jacobian(self, combo: Combo, x: np.ndarray, r: np.ndarray, cols: np.ndarray | None,
                   step: np.ndarray, hi: np.ndarray) -> np.ndarray:
