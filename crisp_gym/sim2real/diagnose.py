@@ -537,12 +537,11 @@ def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter
     names = ref.log.joint_names
     scoped = [(c, c.combo.effects[0].columns(ref)) for c in singles if len(c.combo.effects) == 1
               and c.combo.effects[0].per_joint and c.combo.effects[0].joints is None]
-    per_joint = [c for c, cols in scoped if c.nparam == len(cols)]  # one parameter per joint
-    own = [cols for c, cols in scoped if c.nparam == len(cols)]
+    per_joint = [(c, cols) for c, cols in scoped if c.nparam == len(cols)]  # one parameter per joint
     if len(per_joint) < 2:
         return None
     gaps = np.full((len(per_joint), len(names)), np.inf)
-    for k, (c, cols) in enumerate(zip(per_joint, own)):
+    for k, (c, cols) in enumerate(per_joint):
         gaps[k, cols] = c.heldout_per_joint[cols]
     choice = np.where(np.isfinite(gaps.min(axis=0)), np.argmin(gaps, axis=0), -1)  # -1: no effect acts there
     winners = sorted(set(choice.tolist()) - {-1})
@@ -550,9 +549,10 @@ def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter
         return None
     effects, start = [], []
     for f in winners:
+        winner, own = per_joint[f]
         cols = np.flatnonzero(choice == f)
-        effects.append(type(per_joint[f].combo.effects[0])(joints=tuple(names[c] for c in cols), per_joint=True))
-        start.append(per_joint[f].x[np.searchsorted(own[f], cols)])
+        effects.append(type(winner.combo.effects[0])(joints=tuple(names[c] for c in cols), per_joint=True))
+        start.append(winner.x[np.searchsorted(own, cols)])
     return _fit(fitter, Combo(tuple(effects), ref), [np.concatenate(start)])
 
 

@@ -1,9 +1,9 @@
 """Fit the parameters of an effect (or a combination) to replay windows.
 
 Least squares on the windowed position residual (optionally each window counted by a soft-L1
-loss above the noise, so that one diverging replay does not steer a fit) by Levenberg-Marquardt, so that every
-Jacobian (one perturbed model per parameter) is one batched rollout. Parameters that act on
-one joint each get a diagonal Jacobian from a single perturbed rollout. Two solvers share
+loss above the noise, so that one diverging replay does not steer a fit) by Levenberg-Marquardt,
+so that every Jacobian (one perturbed model per parameter) is one batched rollout. Parameters
+that act on one joint each get a diagonal Jacobian from a single perturbed rollout. Two solvers share
 that Jacobian: MuJoCo's ``mujoco.minimize.least_squares`` (one trial step per rollout, its
 regulariser adapted from the predicted reduction) and the project's own (three damping
 values tried in one batched rollout per iteration); ``benchmarks/gap_lm.py`` compares them.

@@ -94,8 +94,7 @@ class Effect:
         names = tr.log.joint_names
         if self.joints is not None:
             return np.array([names.index(j) for j in self.joints], dtype=int)
-        cols = np.arange(len(names))
-        return driven_columns(tr) if self.on_drives else cols
+        return driven_columns(tr) if self.on_drives else np.arange(len(names))
 
     def values(self, x: np.ndarray, tr: Trajectory) -> np.ndarray:
         """One value per target joint: the shared parameter repeated, or one each."""
