@@ -30,13 +30,15 @@ def main() -> None:
                     help="the fits' Levenberg-Marquardt (DiagnoseConfig.solver)")
     ap.add_argument("--robust-scale", type=float, default=0.0,
                     help="soft-L1 window loss at this many noise floors (DiagnoseConfig.robust_scale; 0: off)")
+    ap.add_argument("--noise-weights", action="store_true",
+                    help="weigh the fits' windows by their noise-only replays (DiagnoseConfig.noise_weights)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()
     cfg = BenchConfig(cases=args.cases, seed=args.seed, noise_scales=tuple(args.noise), models=tuple(args.models),
                       families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside,
                       p_compound=args.p_compound)
     s = run_bench(cfg, args.out, DiagnoseConfig(show_progress=False, solver=args.solver,
-                                                   robust_scale=args.robust_scale))
+                                                   robust_scale=args.robust_scale, noise_weights=args.noise_weights))
     print("| metric | value |\n|---|---|")
     for k, v in s.items():
         if not isinstance(v, dict):

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ def mae(result: Diagnosis, key: str) -> float:
     return float(np.sum(np.abs(getattr(rp, key) - rp.target) * m) / (m.sum() * rp.target.shape[-1]))
 
 
-def servo(out: Path, robust_scale: float) -> None:
+def servo(out: Path, cfg: DiagnoseConfig) -> None:
     logs = [load_servo_json(f) for f in sorted((DATA / "bam_xl330").glob("*.json"))]
     print("| fit kp | held-out kp | verdict | selected / closest effect | parameters | MAE before (rad) | "
           "MAE after (rad) | held-out RMS, selected or closest |")
@@ -38,7 +39,7 @@ def servo(out: Path, robust_scale: float) -> None:
     for fit_kp, test_kp in (((100, 200, 400), (800,)), ((800,), (100, 200, 400))):
         train = [lg for lg in logs if lg[0].meta["kp"] in fit_kp]
         test = [lg for lg in logs if lg[0].meta["kp"] in test_kp]
-        res = diagnose(train, test, DiagnoseConfig(show_progress=False, robust_scale=robust_scale))
+        res = diagnose(train, test, cfg)
         write_report(res, out / f"servo_fit{'-'.join(map(str, fit_kp))}")
         sel = res.selected or res.closest
         params = ", ".join(f"{p['name']}={p['value']:.3g} [{p['ci95'][0]:.3g}, {p['ci95'][1]:.3g}]"
@@ -51,10 +52,9 @@ def servo(out: Path, robust_scale: float) -> None:
               f"{100 * (1 - sel['gap_heldout'] / res.gap_before):.0f} % |")
 
 
-def go2(out: Path, holdout_blocks: int, robust_scale: float) -> None:
+def go2(out: Path, holdout_blocks: int, cfg: DiagnoseConfig) -> None:
     res = diagnose([load_go2_npz(DATA / "go2_fixed_base" / "traj_0.npz")], None,
-                   DiagnoseConfig(holdout_fraction=0.3, holdout_blocks=holdout_blocks, show_progress=False,
-                                  robust_scale=robust_scale))
+                   replace(cfg, holdout_fraction=0.3, holdout_blocks=holdout_blocks))
     write_report(res, out / f"go2_blocks{holdout_blocks}")
     sel = res.selected or res.closest
     print(f"\nGo2 (held out: {res.heldout}; held-out joints {res.heldout_speed_ratio:.2f}x as fast as the fitted): "
@@ -87,13 +87,16 @@ def main() -> None:
                     help="hold out the last 30 %% of each of this many parts of the Go2 log (1: its end)")
     ap.add_argument("--robust-scale", type=float, default=0.0,
                     help="soft-L1 window loss at this many noise floors (DiagnoseConfig.robust_scale; 0: off)")
+    ap.add_argument("--noise-weights", action="store_true",
+                    help="weigh the fits' windows by their noise-only replays (DiagnoseConfig.noise_weights)")
     args = ap.parse_args()
+    cfg = DiagnoseConfig(show_progress=False, robust_scale=args.robust_scale, noise_weights=args.noise_weights)
     if not DATA.is_dir():
         raise SystemExit(f"real data not found at {DATA}")
     if args.only != "go2":
-        servo(Path(args.out), args.robust_scale)
+        servo(Path(args.out), cfg)
     if args.only != "servo":
-        go2(Path(args.out), args.go2_holdout_blocks, args.robust_scale)
+        go2(Path(args.out), args.go2_holdout_blocks, cfg)
 
 
 if __name__ == "__main__":

@@ -10,8 +10,8 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
-from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _per_joint_mixture, at_bound, diagnose,
-                                         median_draw, noise_floors, speed_ratio)
+from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _indistinguishable, _per_joint_mixture, at_bound,
+                                         diagnose, median_draw, noise_floors, speed_ratio)
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals, soft_l1_windows, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -152,14 +152,13 @@ def test_soft_l1_windows_keeps_small_windows_and_counts_large_ones_by_their_rms(
     np.testing.assert_allclose(np.sum(out**2, axis=(1, 2)) / (count * scale**2), 2 * (np.sqrt(1 + e) - 1))
     np.testing.assert_allclose(out[0], r[0], rtol=1e-4)  # e = 1e-4: ρ(e)/e = 1 − e/4 + ...
     assert np.sum(out[1] ** 2) / (count[1] * scale**2) == pytest.approx(2 * np.sqrt(e[1]), rel=0.02)
-    fitter = SimpleNamespace(robust_scale=scale, rep=SimpleNamespace(mask=mask))
+    fitter = SimpleNamespace(robust_scale=scale, window_scale=None, rep=SimpleNamespace(mask=mask))
     assert Fitter._gap(fitter, out) == pytest.approx(gap_rms(r, mask), rel=1e-9)
 
 
-def test_robust_fit_is_not_pulled_by_one_corrupted_window():
-    """An encoder jump of 0.1 rad inside one of a servo log's twelve windows pulls a plain
-    least-squares fit of its damping 5-10 % off (measured over three seeds); counted by the
-    soft-L1 loss at a few noise floors it stays within 2 % of the clean log's fit."""
+def _damped_servo_with_a_jump():
+    """A servo log with viscous damping 0.05, bound clean and with a 0.1 rad encoder jump
+    inside its fourth window (of twelve), and those windows."""
     sc = scenario("servo", BenchConfig())
     rng = np.random.default_rng(1)
     t, u = commands(sc, rng)
@@ -171,6 +170,14 @@ def test_robust_fit_is_not_pulled_by_one_corrupted_window():
     qpos = log.qpos.copy()
     qpos[s + 3:s + n] += 0.1
     jumped = bind(replace(log, qpos=qpos), sc.model)
+    return tr, jumped, windows
+
+
+def test_robust_fit_is_not_pulled_by_one_corrupted_window():
+    """An encoder jump of 0.1 rad inside one of a servo log's twelve windows pulls a plain
+    least-squares fit of its damping 5-10 % off (measured over three seeds); counted by the
+    soft-L1 loss at a few noise floors it stays within 2 % of the clean log's fit."""
+    tr, jumped, windows = _damped_servo_with_a_jump()
     clean = Fitter(Replayer([tr], windows)).fit(Combo((fx.ViscousDamping(),), tr)).x[0]
     plain = Fitter(Replayer([jumped], windows)).fit(Combo((fx.ViscousDamping(),), jumped)).x[0]
     robust = Fitter(Replayer([jumped], windows), robust_scale=0.005).fit(Combo((fx.ViscousDamping(),), jumped)).x[0]
@@ -178,6 +185,56 @@ def test_robust_fit_is_not_pulled_by_one_corrupted_window():
     assert abs(robust - clean) < 0.02 * clean
     with pytest.raises(ValueError, match="robust_scale"):
         Fitter(Replayer([tr], windows), robust_scale=0.0)
+
+
+def test_a_window_scaled_down_does_not_pull_the_fit_and_the_reported_gap_is_the_plain_one():
+    """The corrupted window of the test above, scaled by 0.05 (others by 1): the damping fit
+    stays within 2 % of the clean log's; the training gap it reports is the plain RMS at its
+    fit (the scaling undone). A scale per window is checked."""
+    tr, jumped, windows = _damped_servo_with_a_jump()
+    combo = Combo((fx.ViscousDamping(),), jumped)
+    clean = Fitter(Replayer([tr], windows)).fit(Combo((fx.ViscousDamping(),), tr)).x[0]
+    scale = np.ones(len(windows))
+    scale[3] = 0.05
+    rep = Replayer([jumped], windows)
+    res = Fitter(rep, window_scale=scale).fit(combo)
+    assert abs(res.x[0] - clean) < 0.02 * clean
+    plain_gap = gap_rms(residuals(rep, [combo.inputs(res.x, rep.trajs)])[0], rep.mask)
+    assert res.train_gap == pytest.approx(plain_gap, rel=1e-9)
+    with pytest.raises(ValueError, match="window_scale"):
+        Fitter(rep, window_scale=scale[1:])
+
+
+def test_noise_weights_count_less_the_windows_where_contacts_begin():
+    """Replayed under noise alone, a window in which the rail leg's foot keeps or lacks contact
+    throughout replays like the typical one (full weight); the least reliable window is one
+    where the foot strikes the floor. The arm, which has no contacts, keeps every window
+    near full weight."""
+    from crisp_gym.sim2real.diagnose import noise_weights
+
+    for name in ("rail_leg", "arm"):
+        sc = scenario(name, BenchConfig())
+        rng = np.random.default_rng(0)
+        t, u = commands(sc, rng)
+        log = synthesize(sc, {"family": "none"}, t, u, 0.0, rng)  # the weights add the encoder's noise
+        tr = bind(log, sc.model)
+        windows = make_windows([tr], 0.5)
+        weights = noise_weights(Replayer([tr], windows), seed=0)
+        assert weights.shape == (len(windows),) and np.all((weights > 0) & (weights <= 1))
+        if name == "arm":
+            assert weights.min() > 0.8
+            continue
+        data = mujoco.MjData(tr.model)
+        touching = []
+        for q in log.qpos:
+            data.qpos[tr.qadr] = q
+            mujoco.mj_forward(tr.model, data)
+            touching.append(data.ncon > 0)
+        touching = np.array(touching)
+        strikes = np.flatnonzero(touching[1:] & ~touching[:-1]) + 1
+        counts = np.array([np.sum((strikes >= s) & (strikes < s + n)) for s, n in zip(windows.start, windows.length)])
+        assert np.any(counts == 0) and np.all(weights[counts == 0] > 0.95)
+        assert counts[np.argmin(weights)] > 0 and weights.min() < 0.5
 
 
 def test_fitter_rejects_an_unknown_solver_and_a_step_fraction_outside_0_1():
@@ -343,8 +400,9 @@ def test_bench_scores_a_weak_part_of_two_effects_apart():
     parts = [{"family": "delay", "effect": "actuator_delay", "joint": "hip", "x": [0.02], "x0": [0.0]},
              {"family": "coulomb_friction", "effect": "coulomb_friction", "joint": "knee", "x": [0.1], "x0": [0.0]}]
     truth = {"family": "coulomb_friction+delay", "effect": "compound", "parts": parts, "signature": 0.1}
-    result = SimpleNamespace(verdict="explained", selected={"family": "delay", "parameters": []}, noise_floor=0.01,
-                             shrink=0.9, gap_before=0.1, where={"worst_joint": "hip"})
+    selected = {"family": "delay", "parameters": [], "indistinguishable": []}
+    result = SimpleNamespace(verdict="explained", selected=selected, noise_floor=0.01, shrink=0.9, gap_before=0.1,
+                             where={"worst_joint": "hip"})
     floor = DETECTABLE * 0.01
     # part_signatures[i]: part i's size, the gap left with the other part applied
     weak_friction = score_case({**truth, "part_signatures": [5 * floor, 0.5 * floor]}, result)
@@ -733,6 +791,46 @@ def test_per_joint_mixture_gives_each_joint_the_best_effect_with_a_parameter_the
                                                          "viscous_damping[per-joint: rail,knee]"]
     np.testing.assert_array_equal(seen[0][1][0], [1.3, 2.0, 4.0])
     assert _per_joint_mixture([gain], tr, Recorder()) is None
+
+
+def test_candidates_the_noise_cannot_tell_from_the_winner_are_named_simplest_first() -> None:
+    """Floor 0.01, tolerance 1: a squared held-out gap within 1e-4 of the smallest (0.0095²,
+    i.e. up to 0.0138) cannot be told from it. The support box (0.0120) and the tilt (0.0130)
+    are named, the tilt first (two parameters against three); the mass (0.0145) is not. The
+    ground height's richer relative, and the support box's, are the same model with a part it
+    does not need; the winner's own family is the winner."""
+    tr = _rail_leg_template()
+
+    def cand(effects, gap):
+        combo = Combo(tuple(effects), tr)
+        return Candidate(combo, np.zeros(len(combo.params)), 0.0, heldout_gap=gap, score=gap**2)
+
+    ranked = [cand([fx.GroundHeight()], 0.0100),
+              cand([fx.GroundHeight(), fx.MassScale()], 0.0095),  # richer than the winner
+              cand([fx.SupportBox()], 0.0120),
+              cand([fx.SupportBox(), fx.ViscousDamping()], 0.0118),  # richer than a named one
+              cand([fx.GroundTilt()], 0.0130),
+              cand([fx.MassScale()], 0.0145)]
+    named = _indistinguishable(ranked, floor=0.01, tolerance=1.0)
+    assert [c.combo.family for c in named] == ["ground_tilt", "support_box"]
+    assert _indistinguishable(ranked, floor=0.001, tolerance=1.0) == []  # a low floor tells them all apart
+
+
+def test_bench_credits_a_truth_named_indistinguishable_apart_from_the_winner():
+    """A support box called ground height, with the box named as indistinguishable: a miss,
+    and right when the diagnosis's alternatives count; an unexplained verdict names nothing."""
+    from crisp_gym.sim2real.bench import score_case
+
+    truth = {"family": "support_box", "effect": "support_box", "x": [0.02, 0.0, 0.0], "x0": [0.0, 0.0, 0.0],
+             "signature": 0.1}
+    selected = {"family": "ground_height", "parameters": [],
+                "indistinguishable": [{"effect": "support_box[shared]", "family": "support_box", "gap_heldout": 0.01}]}
+    explained = SimpleNamespace(verdict="explained", selected=selected, noise_floor=0.01, shrink=0.9,
+                                gap_before=0.1, where={"worst_joint": "hip"})
+    row = score_case(truth, explained)
+    assert not row["correct"] and row["correct_or_indistinguishable"] and row["indistinguishable"] == 1
+    row = score_case(truth, SimpleNamespace(**{**vars(explained), "verdict": "unexplained", "selected": None}))
+    assert not row["correct"] and not row["correct_or_indistinguishable"] and row["indistinguishable"] == 0
 
 
 def test_rotor_track_follows_the_simulated_rotor_closer_than_its_force_balance() -> None:

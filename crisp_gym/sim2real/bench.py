@@ -19,6 +19,10 @@ if called "none" or the right family), because no diagnosis can tell it from noi
 The same rule holds for each part of a two-effect truth beside the other
 (:func:`part_signatures`): naming only the parts that are not weak is right too, and
 ``identification_accuracy_strict`` in the summary scores without that allowance.
+``identified_or_named_indistinguishable`` also counts an explained case right when the truth's
+family is among those the diagnosis names as indistinguishable from its winner on these logs
+(a support box under a foot that never leaves it is a raised ground there); the headline
+accuracy does not.
 """
 
 from __future__ import annotations
@@ -425,8 +429,13 @@ def score_case(truth: dict, result: Diagnosis) -> dict:
     if any(weak_parts):  # a part too weak to see beside the others: naming the others is right too
         strong = {part["family"] for part, w in zip(parts, weak_parts) if not w}
         acceptable |= {"+".join(sorted(strong))} if strong else {part["family"] for part in parts}
-    row = {"truth": expected, "predicted": predicted, "weak": bool(weak), "weak_parts": int(sum(weak_parts)),
+    # the winner, or a family the diagnosis names as indistinguishable from it on these logs
+    named = {predicted} | ({o["family"] for o in sel["indistinguishable"]} if verdict == "explained" else set())
+    row = {"truth": expected, "verdict": verdict, "predicted": predicted, "weak": bool(weak),
+           "weak_parts": int(sum(weak_parts)),
            "correct": predicted in acceptable, "correct_strict": predicted == expected,
+           "correct_or_indistinguishable": bool(named & acceptable),
+           "indistinguishable": len(named) - 1,
            "signature": truth["signature"], "shrink": result.shrink, "gap_before": result.gap_before,
            "floor": result.noise_floor, "param_error": None, "ci_contains": None, "location_error_m": None,
            "localised": None}
@@ -502,6 +511,10 @@ def summarize(rows: list[dict]) -> dict:
         "cases": len(rows),
         "identification_accuracy": _mean([r["correct"] for r in inlib]),
         "identification_accuracy_strict": _mean([r.get("correct_strict", r["correct"]) for r in inlib]),
+        "identified_or_named_indistinguishable": _mean([r["correct_or_indistinguishable"] for r in inlib]),
+        "indistinguishable_named_per_explained_case": (
+            float(np.mean([r["indistinguishable"] for r in rows if r["verdict"] == "explained"]))
+            if any(r["verdict"] == "explained" for r in rows) else None),
         "compound_with_weak_part": sum(1 for r in inlib if r.get("weak_parts")),
         "false_positive_rate_on_none": _mean([not r["correct"] for r in none]),
         "outside_reported_unexplained": _mean([r["correct"] for r in outside]),

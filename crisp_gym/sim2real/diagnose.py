@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -64,6 +65,12 @@ class DiagnoseConfig:
             mean square, at this many nominal noise floors (:class:`~crisp_gym.sim2real.fit.Fitter`):
             a window whose replay diverges (or whose log jumps) counts by its RMS, not its square.
             0 (the default): plain least squares; ``docs/sim2real.md`` says when to use it.
+        noise_weights: if true, the fits count each training window in proportion to how well
+            the nominal model replays it under noise alone (:func:`noise_weights`): where a
+            contact's timing flips with the noise (a stamping foot), a window diverges whatever
+            the parameters, and least squares would trade every other window's fit for it.
+            Windows that replay as reliably as the typical one keep their full weight, so
+            models without such events are fitted as before. Off by default.
         solver: the fits' Levenberg-Marquardt (:data:`~crisp_gym.sim2real.fit.Solver`):
             ``"mujoco"`` (``mujoco.minimize.least_squares``, 40 % fewer rollouts over the
             bench's models, ``benchmarks/gap_lm.py``) or ``"batched"`` (the project's own).
@@ -96,6 +103,7 @@ class DiagnoseConfig:
     max_iter: int = 15
     step_fraction: float = 0.03
     robust_scale: float = 0.0
+    noise_weights: bool = False
     solver: Solver = "mujoco"
     nthread: int = 2
     seed: int = 0
@@ -179,6 +187,16 @@ def resynthesize(rep: Replayer, combo: Combo, x: np.ndarray, rng: np.random.Gene
     return trajs
 
 
+def _noise_residuals(rep: Replayer, seed: int, candidate: Candidate | None, draws: int) -> Iterator[np.ndarray]:
+    """The windowed residuals (nwin, size-1, J) of the nominal model (or ``candidate``'s) on
+    ``draws`` logs it resynthesises itself (:func:`resynthesize`): what noise alone leaves."""
+    combo = candidate.combo if candidate is not None else Combo((), rep.trajs[0])
+    x = candidate.x if candidate is not None else np.zeros(0)
+    for k in range(draws):
+        trajs = resynthesize(rep, combo, x, np.random.default_rng(seed + k))
+        yield residuals(Replayer(trajs, rep.windows, rep.nthread), [combo.inputs(x, trajs)])[0]
+
+
 def noise_floors(rep: Replayer, seed: int, candidate: Candidate | None = None, draws: int = 5) -> np.ndarray:
     """Per-joint windowed gap (draws, J) on the logs :func:`resynthesize` makes with the nominal
     model (or ``candidate``'s), one row per noise draw, from the smallest overall RMS to the
@@ -187,16 +205,21 @@ def noise_floors(rep: Replayer, seed: int, candidate: Candidate | None = None, d
     That gap is heavy-tailed (with contacts, one unlucky noise draw can make a window
     diverge), so several draws are made: the median one (:func:`median_draw`) is the
     typical floor, the last the largest the exact model produces."""
-    combo = candidate.combo if candidate is not None else Combo((), rep.trajs[0])
-    x = candidate.x if candidate is not None else np.zeros(0)
-    floors = []
-    for k in range(draws):
-        trajs = resynthesize(rep, combo, x, np.random.default_rng(seed + k))
-        srep = Replayer(trajs, rep.windows, rep.nthread)
-        r = residuals(srep, [combo.inputs(x, trajs)])[0]
-        floors.append(np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum()))
-    floors = np.array(floors)
+    floors = np.array([np.sqrt(np.sum(r**2, axis=(0, 1)) / rep.mask.sum())
+                       for r in _noise_residuals(rep, seed, candidate, draws)])
     return floors[np.argsort(np.mean(floors**2, axis=1))]
+
+
+def noise_weights(rep: Replayer, seed: int, draws: int = 5) -> np.ndarray:
+    """(nwin,) each window's weight in the fits: 1 / sqrt(its mean square under noise alone over
+    the median window's), at most 1. Generalised least squares' weights by each window's noise
+    variance (over ``draws`` draws of :func:`_noise_residuals`, the nominal model's), capped
+    so that no window counts more than the typical one: a window whose contacts flip with the
+    noise counts less, the others as before."""
+    counts = np.maximum(rep.mask.sum(axis=1), 1)
+    mean_square = np.mean([np.sum(r**2, axis=(1, 2)) / (counts * r.shape[-1])
+                           for r in _noise_residuals(rep, seed, None, draws)], axis=0)
+    return 1.0 / np.sqrt(np.maximum(mean_square / max(np.median(mean_square), 1e-300), 1.0))
 
 
 def median_draw(floors: np.ndarray) -> np.ndarray:
@@ -210,7 +233,8 @@ def _overall(floor_j: np.ndarray) -> float:
 
 def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
                        max_iter: int = 3, solver: Solver = "mujoco",
-                       step_fraction: float = 0.03, robust_scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       step_fraction: float = 0.03, robust_scale: float | None = None,
+                       window_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
     training logs it resynthesises itself (:func:`resynthesize`). The refits' mean offset
     is a bias of replay fits (noisy initial states and velocities), which the sandwich
@@ -224,7 +248,7 @@ def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: in
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
         fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver,
-                        step_fraction=step_fraction, robust_scale=robust_scale)
+                        step_fraction=step_fraction, robust_scale=robust_scale, window_scale=window_scale)
         refits.append(fitter.fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
@@ -325,7 +349,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     focus = names[int(np.argmax(train_rms**2 - floor_j**2))]
 
     fitter = Fitter(rep_train, cfg.max_iter, solver=cfg.solver, step_fraction=cfg.step_fraction,
-                    robust_scale=cfg.robust_scale * floor or None)
+                    robust_scale=cfg.robust_scale * floor or None,
+                    window_scale=noise_weights(rep_train, cfg.seed, cfg.floor_draws) if cfg.noise_weights else None)
     effects = library(tr_train[0], focus=focus if len(names) > 1 else None, families=cfg.families or None)
     candidates: list[Candidate] = []
     skipped: list[dict[str, str]] = []
@@ -358,7 +383,9 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     # simpler candidate twice its gap.)
     best_floors = noise_floors(rep_test, cfg.seed, ranked[0], cfg.floor_draws)
     floor_best = _overall(best_floors[-1])
-    ranked = _parsimonious_first(ranked, max(floor, _overall(median_draw(best_floors))), cfg.tolerance)
+    floor_typical = max(floor, _overall(median_draw(best_floors)))
+    ranked = _parsimonious_first(ranked, floor_typical, cfg.tolerance)
+    alternatives = _indistinguishable(ranked, floor_typical, cfg.tolerance)
     verdict, selected = _verdict(ranked, gap_before, floor, floor_best, cfg)
     best = ranked[0]
     runner = next((c for c in ranked[1:] if c.combo.family != best.combo.family), None)
@@ -369,7 +396,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
         lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver,
-                                    step_fraction=cfg.step_fraction, robust_scale=fitter.robust_scale)
+                                    step_fraction=cfg.step_fraction, robust_scale=fitter.robust_scale,
+                                    window_scale=fitter.window_scale)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
     # a parameter the data do not determine: any value in its range
     lo = np.where(identified, lo, [p.lo for p in chosen.combo.params])
@@ -388,6 +416,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
         "runner_up": None if runner is None else runner.combo.label,
         "per_joint_gap_after": {n: float(g) for n, g in zip(names, per_joint_after)},
         "shares": part_shares(chosen, rep_test),
+        "indistinguishable": [{"effect": c.combo.label, "family": c.combo.family, "gap_heldout": c.heldout_gap}
+                              for c in alternatives],
     }
     gap_after = chosen.heldout_gap if selected is not None else gap_before
     excess0 = gap_before**2 - floor**2
@@ -497,7 +527,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
             bases.append(c)
     names = ref.log.joint_names
     screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction,
-                    blockwise=True, robust_scale=fitter.robust_scale)
+                    blockwise=True, robust_scale=fitter.robust_scale, window_scale=fitter.window_scale)
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
     for i, base in enumerate(bases):
@@ -585,6 +615,22 @@ def _parsimonious_first(ranked: list[Candidate], floor: float, tolerance: float)
             break
         best = min(simpler, key=lambda c: c.score)
     return [best] + [c for c in ranked if c is not best]
+
+
+def _indistinguishable(ranked: list[Candidate], floor: float, tolerance: float) -> list[Candidate]:
+    """Candidates of other families that these logs cannot tell from the winner ``ranked[0]``:
+    squared held-out gaps within ``tolerance`` x ``floor``² of the smallest, as for parsimony.
+    The simplest of each such family, simplest first; a candidate holding every family of the
+    winner or of one listed before (the same model with a part it does not need) is left out."""
+    limit = min(c.heldout_gap for c in ranked) ** 2 + tolerance * floor**2
+    listed = [set(ranked[0].combo.family.split("+"))]
+    out = []
+    for c in sorted(ranked[1:], key=lambda c: (c.nparam, c.score)):
+        families = set(c.combo.family.split("+"))
+        if c.heldout_gap**2 <= limit and not any(families >= seen for seen in listed):
+            out.append(c)
+            listed.append(families)
+    return out
 
 
 def _verdict(ranked: list[Candidate], gap_before: float, floor: float, floor_best: float,

@@ -185,7 +185,7 @@ class Fitter:
 
     def __init__(self, replayer: Replayer, max_iter: int = 15, restarts: int = 2,
                  solver: Solver = "mujoco", step_fraction: float = 0.03, blockwise: bool = False,
-                 robust_scale: float | None = None) -> None:
+                 robust_scale: float | None = None, window_scale: np.ndarray | None = None) -> None:
         """``restarts``: fresh-damping restarts of the batched solver after it stops.
         ``step_fraction``: each parameter's finite-difference step is at least this fraction
         of its range. Contacts (a foot's impacts, an end stop) make a replay's cost rugged on
@@ -201,13 +201,20 @@ class Fitter:
         linear in the window's RMS above it. Where a replay is chaotic (a stamping foot), one
         window whose contact events a small change flips can hold most of the squared residual,
         and least squares then trades every other window's fit for it; counted by its RMS it
-        steers the fit less. ``None``: plain least squares."""
+        steers the fit less. ``None``: plain least squares.
+        ``window_scale`` (nwin,): each window's residual is multiplied by its entry before the
+        loss (:func:`~crisp_gym.sim2real.diagnose.noise_weights`: a window whose replay noise
+        alone makes diverge counts less). The reported training gap undoes both rescalings."""
         if solver not in get_args(Solver):
             raise ValueError(f"unknown solver {solver!r}; expected one of {get_args(Solver)}")
         if not 0.0 <= step_fraction < 1.0:
             raise ValueError(f"step_fraction must be in [0, 1), got {step_fraction}")
         if robust_scale is not None and not robust_scale > 0:
             raise ValueError(f"robust_scale must be positive (or None), got {robust_scale}")
+        if window_scale is not None and (np.shape(window_scale) != (len(replayer.windows),)
+                                         or not np.all(np.asarray(window_scale) > 0)):
+            raise ValueError(f"window_scale must be positive, one per window ({len(replayer.windows)}), "
+                             f"got shape {np.shape(window_scale)}")
         self.rep = replayer
         self.max_iter = max_iter
         self.restarts = restarts
@@ -215,21 +222,26 @@ class Fitter:
         self.step_fraction = step_fraction
         self.blockwise = blockwise
         self.robust_scale = robust_scale
+        self.window_scale = window_scale
         self.rollouts = 0
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
         """The residuals the fit minimises the squares of, at each of ``xs``."""
         self.rollouts += len(xs) * len(self.rep.windows)
         r = residuals(self.rep, [combo.inputs(x, self.rep.trajs) for x in xs])
+        if self.window_scale is not None:
+            r *= self.window_scale[:, None, None]
         return r if self.robust_scale is None else soft_l1_windows(r, self.rep.mask, self.robust_scale)
 
     def _gap(self, r: np.ndarray) -> float:
-        """The plain RMS gap of one fitted residual ``r`` (robust ones undone window by window)."""
-        if self.robust_scale is None:
-            return gap_rms(r, self.rep.mask)
-        count = self.rep.mask.sum(axis=1) * r.shape[-1] * self.robust_scale**2
-        loss = np.sum(r**2, axis=(1, 2)) / np.maximum(count, 1e-300)
-        squares = ((loss / 2 + 1) ** 2 - 1) * count  # the inverse of the soft-L1 loss
+        """The plain RMS gap of one fitted residual ``r`` (the rescalings undone window by window)."""
+        squares = np.sum(r**2, axis=(1, 2))
+        if self.robust_scale is not None:
+            count = self.rep.mask.sum(axis=1) * r.shape[-1] * self.robust_scale**2
+            loss = squares / np.maximum(count, 1e-300)
+            squares = ((loss / 2 + 1) ** 2 - 1) * count  # the inverse of the soft-L1 loss
+        if self.window_scale is not None:
+            squares = squares / self.window_scale**2
         return float(np.sqrt(np.sum(squares) / (self.rep.mask.sum() * r.shape[-1])))
 
     def _cost(self, r: np.ndarray) -> np.ndarray:

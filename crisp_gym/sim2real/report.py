@@ -61,6 +61,16 @@ def extrapolation_lines(result: Diagnosis) -> list[str]:
             f"held-out gap also measures how the fitted model extrapolates.{hint}"]
 
 
+def _indistinguishable_lines(sel: dict) -> list[str]:
+    """The candidates of other families these logs cannot tell from the selected (or closest) one."""
+    others = sel["indistinguishable"]
+    if not others:
+        return []
+    named = ", ".join(f"{o['effect']} ({_fmt(o['gap_heldout'])} rad)" for o in others)
+    return [f"These logs cannot tell it from {named}: their held-out gaps differ by less than the noise floor. "
+            "A log that moves the joints (or the contacts) where these effects act differently would decide."]
+
+
 def _markdown(result: Diagnosis, figures: list[str]) -> str:
     sel = result.selected or result.closest
     lines = ["# Sim-to-real gap diagnosis", ""]
@@ -77,6 +87,7 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
         if sel["shares"]:
             lines.append("Shares of what it removes: " + ", ".join(
                 f"{s['effect']} {100 * s['share']:.0f} %" for s in sel["shares"]) + ".")
+        lines += _indistinguishable_lines(sel)
     else:
         closest_shrink = 1.0 - sel["gap_heldout"] / result.gap_before if result.gap_before > 0 else 0.0
         lines.append(f"**Verdict: unexplained.** No effect in the library brings the held-out gap "
@@ -84,6 +95,7 @@ def _markdown(result: Diagnosis, figures: list[str]) -> str:
                      f"The closest candidate, {sel['effect']}, leaves {_fmt(sel['gap_heldout'])} rad "
                      f"({100 * closest_shrink:.0f} % shrink); it is the nearest model, not a cause: an effect "
                      f"outside the library can be imitated by a mix of others.")
+        lines += _indistinguishable_lines(sel)
         lines += ["", *_residual_lines(result.residual)]
     lines += ["", f"Held out: {result.heldout}.", *extrapolation_lines(result), ""]
     if sel:
