@@ -17,6 +17,8 @@ from crisp_gym.sim2real.diagnose import HELDOUT_LOGS, Diagnosis
 
 EXTRAPOLATION_RATIO = 1.5
 """Held-out joint speeds more than this factor above (or below) the fitted ones are flagged."""
+PLOT_LABEL_CHARS = 50
+"""Candidate labels longer than this are cut on the ranking plot's axis (``report.md`` has them whole)."""
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
 
@@ -216,14 +218,18 @@ def _plots(result: Diagnosis, out: Path) -> list[str]:
 
     rank = result.ranking[:12]
     fig, ax = plt.subplots(figsize=(7, 0.3 * len(rank) + 1.2))
-    ax.barh([r["effect"] for r in rank][::-1], [r["gap_heldout"] for r in rank][::-1])
+    # a per-joint mixture's label lists every joint: cut for the axis (the table has it whole)
+    labels = [r["effect"] if len(r["effect"]) <= PLOT_LABEL_CHARS else r["effect"][:PLOT_LABEL_CHARS - 1] + "…"
+              for r in rank]
+    ax.barh(labels[::-1], [r["gap_heldout"] for r in rank][::-1])
     ax.axvline(result.gap_before, color="C3", label="before")
     ax.axvline(result.noise_floor, color="k", ls="--", label="noise floor")
     ax.set_xlabel("held-out RMS gap (rad)")
+    ax.xaxis.set_major_locator(plt.MaxNLocator(4))  # gaps' tick labels are long
     ax.tick_params(axis="y", labelsize=7)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "ranking.png", dpi=90)
+    fig.savefig(out / "ranking.png", dpi=90, bbox_inches="tight")
     plt.close(fig)
     files.append("ranking.png")
     return files
