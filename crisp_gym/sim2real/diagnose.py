@@ -231,25 +231,23 @@ def _overall(floor_j: np.ndarray) -> float:
     return float(np.sqrt(np.mean(floor_j**2)))
 
 
-def bootstrap_interval(rep: Replayer, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
-                       max_iter: int = 3, solver: Solver = "mujoco",
-                       step_fraction: float = 0.03, robust_scale: float | None = None,
-                       window_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def bootstrap_interval(fitter: Fitter, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
+                       max_iter: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
-    training logs it resynthesises itself (:func:`resynthesize`). The refits' mean offset
+    ``fitter``'s training logs it resynthesises itself (:func:`resynthesize`), each refit with
+    ``fitter``'s settings (:meth:`Fitter.on`). The refits' mean offset
     is a bias of replay fits (noisy initial states and velocities), which the sandwich
     covariance ignores; their spread, a second estimate of the random error beside
     ``sandwich_sd``. The resynthesised noise only approximates the real one (white, not
     quantised), so the offset sizes the bias without correcting it: the interval is
     centred on the estimate, half-width t x sqrt(max(spread, sandwich_sd)^2 + offset^2).
     Refits start at the estimate, so a few iterations (``max_iter``) reach their optimum."""
+    rep = fitter.rep
     refits = []
     for b in range(draws):
         trajs = resynthesize(rep, candidate.combo, candidate.x, np.random.default_rng(seed + 1 + b))
         combo = Combo(candidate.combo.effects, trajs[0])
-        fitter = Fitter(Replayer(trajs, rep.windows, rep.nthread), max_iter, solver=solver,
-                        step_fraction=step_fraction, robust_scale=robust_scale, window_scale=window_scale)
-        refits.append(fitter.fit(combo, [candidate.x]).x)
+        refits.append(fitter.on(Replayer(trajs, rep.windows, rep.nthread), max_iter).fit(combo, [candidate.x]).x)
     refits = np.array(refits)
     spread, offset = refits.std(axis=0, ddof=1), refits.mean(axis=0) - candidate.x
     half = stats.t.ppf(0.975, draws - 1) * np.sqrt(np.maximum(spread, sandwich_sd) ** 2 + offset**2)
@@ -395,9 +393,7 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     lo, hi = chosen.x - half, chosen.x + half
     ci_method = "sandwich covariance, clustered by window"
     if verdict == "explained" and cfg.bootstrap >= 3:
-        lo, hi = bootstrap_interval(rep_train, chosen, cfg.bootstrap, cfg.seed, half / 1.96, solver=cfg.solver,
-                                    step_fraction=cfg.step_fraction, robust_scale=fitter.robust_scale,
-                                    window_scale=fitter.window_scale)
+        lo, hi = bootstrap_interval(fitter, chosen, cfg.bootstrap, cfg.seed, half / 1.96)
         ci_method += f", widened by a parametric bootstrap ({cfg.bootstrap} refits)"
     # a parameter the data do not determine: any value in its range
     lo = np.where(identified, lo, [p.lo for p in chosen.combo.params])
@@ -526,8 +522,7 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
         if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
             bases.append(c)
     names = ref.log.joint_names
-    screen = Fitter(fitter.rep, cfg.screen_iter, restarts=0, solver=cfg.solver, step_fraction=cfg.step_fraction,
-                    blockwise=True, robust_scale=fitter.robust_scale, window_scale=fitter.window_scale)
+    screen = fitter.on(fitter.rep, cfg.screen_iter, restarts=0, blockwise=True)
     screened: list[Candidate] = []
     seen: set[frozenset[str]] = set()
     for i, base in enumerate(bases):

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 import mujoco
 import numpy as np
@@ -224,6 +224,14 @@ class Fitter:
         self.robust_scale = robust_scale
         self.window_scale = window_scale
         self.rollouts = 0
+
+    def on(self, replayer: Replayer, max_iter: int, **overrides: Any) -> Fitter:
+        """A fitter with this one's settings (solver, steps, window loss and scales, restarts,
+        blockwise derivatives; ``overrides`` replace any of them) on ``replayer``, whose windows
+        must be this one's (a screen of the same logs, refits of resynthesised ones)."""
+        settings = {"restarts": self.restarts, "solver": self.solver, "step_fraction": self.step_fraction,
+                    "blockwise": self.blockwise, "robust_scale": self.robust_scale, "window_scale": self.window_scale}
+        return Fitter(replayer, max_iter, **{**settings, **overrides})
 
     def _res(self, combo: Combo, xs: list[np.ndarray]) -> np.ndarray:
         """The residuals the fit minimises the squares of, at each of ``xs``."""
