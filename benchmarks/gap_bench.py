@@ -32,13 +32,16 @@ def main() -> None:
                     help="soft-L1 window loss at this many noise floors (DiagnoseConfig.robust_scale; 0: off)")
     ap.add_argument("--noise-weights", action="store_true",
                     help="weigh the fits' windows by their noise-only replays (DiagnoseConfig.noise_weights)")
+    ap.add_argument("--no-inverse-dynamics", action="store_true",
+                    help="leave out the joint model fitted from inverse dynamics (DiagnoseConfig.inverse_dynamics)")
     ap.add_argument("--out", default="gap_bench")
     args = ap.parse_args()
     cfg = BenchConfig(cases=args.cases, seed=args.seed, noise_scales=tuple(args.noise), models=tuple(args.models),
                       families=tuple(args.families), p_none=args.p_none, p_outside=args.p_outside,
                       p_compound=args.p_compound)
     s = run_bench(cfg, args.out, DiagnoseConfig(show_progress=False, solver=args.solver,
-                                                   robust_scale=args.robust_scale, noise_weights=args.noise_weights))
+                                                   robust_scale=args.robust_scale, noise_weights=args.noise_weights,
+                                                   inverse_dynamics=not args.no_inverse_dynamics))
     print("| metric | value |\n|---|---|")
     for k, v in s.items():
         if not isinstance(v, dict):

@@ -89,8 +89,11 @@ def main() -> None:
                     help="soft-L1 window loss at this many noise floors (DiagnoseConfig.robust_scale; 0: off)")
     ap.add_argument("--noise-weights", action="store_true",
                     help="weigh the fits' windows by their noise-only replays (DiagnoseConfig.noise_weights)")
+    ap.add_argument("--no-inverse-dynamics", action="store_true",
+                    help="leave out the joint model fitted from inverse dynamics (DiagnoseConfig.inverse_dynamics)")
     args = ap.parse_args()
-    cfg = DiagnoseConfig(show_progress=False, robust_scale=args.robust_scale, noise_weights=args.noise_weights)
+    cfg = DiagnoseConfig(show_progress=False, robust_scale=args.robust_scale, noise_weights=args.noise_weights,
+                         inverse_dynamics=not args.no_inverse_dynamics)
     if not DATA.is_dir():
         raise SystemExit(f"real data not found at {DATA}")
     if args.only != "go2":

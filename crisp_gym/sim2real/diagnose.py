@@ -5,10 +5,14 @@ held-out windows (other logs, or the last part of each log), with a penalty per 
 that a richer model must earn its keep. Two effects together come from forward selection
 (every other effect fitted together with the best one for a few iterations and judged on the
 held-out windows, the best of those pairs then fitted fully), and on multi-joint logs from
-a per-joint mixture (each joint's best per-joint family, confined to those joints). The verdict compares
-gaps with the *noise floor*: the gap this same pipeline measures on a log that the model
-itself produced, with the log's own measurement noise. A log whose gap is at the floor
-gets "none"; a gap that no effect brings near the floor is "unexplained".
+a per-joint mixture (each joint's best per-joint family, confined to those joints). Where the
+log holds every degree of freedom of the model, every joint's Coulomb friction, damping,
+armature and load friction are also fitted together, from a linear estimate on the torque the
+logged motion needed (:mod:`~crisp_gym.sim2real.inverse`), and the effects the held-out data do
+not need are pruned. The verdict compares gaps with the *noise floor*: the gap this same
+pipeline measures on a log that the model itself produced, with the log's own measurement
+noise. A log whose gap is at the floor gets "none"; a gap that no effect brings near the floor
+is "unexplained".
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from tqdm import tqdm
 from crisp_gym.sim2real.effects import CannotApply, Effect, Param, check_families, library
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, Solver, gap_rms, residuals
 from crisp_gym.sim2real.gap import residual_structure, where
+from crisp_gym.sim2real.inverse import JOINT_MODEL, joint_model_start
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.replay import Replayer, Trajectory, bind, collected_warnings, make_windows, nominal_inputs
 
@@ -71,6 +76,10 @@ class DiagnoseConfig:
             the parameters, and least squares would trade every other window's fit for it.
             Windows that replay as reliably as the typical one keep their full weight, so
             models without such events are fitted as before. Off by default.
+        inverse_dynamics: also fit every joint's Coulomb friction, damping, armature and load
+            friction together, from their linear estimate on the torque the logged motion needed
+            (:mod:`~crisp_gym.sim2real.inverse`; skipped, with the reason, where the log lacks a
+            degree of freedom of the model; left out where ``families`` does not hold all four).
         solver: the fits' Levenberg-Marquardt (:data:`~crisp_gym.sim2real.fit.Solver`):
             ``"mujoco"`` (``mujoco.minimize.least_squares``, 40 % fewer rollouts over the
             bench's models, ``benchmarks/gap_lm.py``) or ``"batched"`` (the project's own).
@@ -104,6 +113,7 @@ class DiagnoseConfig:
     step_fraction: float = 0.03
     robust_scale: float = 0.0
     noise_weights: bool = False
+    inverse_dynamics: bool = True
     solver: Solver = "mujoco"
     nthread: int = 2
     seed: int = 0
@@ -368,6 +378,9 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     combined += [mixture] if mixture is not None else []
     _evaluate(rep_test, combined)
     candidates += combined
+    joint_model = _joint_model_fit(tr_train, fitter, cfg, skipped) if cfg.inverse_dynamics else None
+    if joint_model is not None:
+        candidates.append(_pruned(joint_model, fitter, rep_test, floor, cfg))  # evaluated there
     for c in candidates:
         c.score = c.heldout_gap**2 * (1 + cfg.penalty * c.nparam)
     ranked = sorted(candidates, key=lambda c: c.score)
@@ -581,6 +594,57 @@ def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter
     return _fit(fitter, Combo(tuple(effects), ref), [np.concatenate(start)])
 
 
+def _joint_model_fit(trajs: list[Trajectory], fitter: Fitter, cfg: DiagnoseConfig,
+                     skipped: list[dict[str, str]]) -> Candidate | None:
+    """Every joint's Coulomb friction, damping, armature and load friction fitted together by
+    replay, from the inverse-dynamics estimate (:func:`~crisp_gym.sim2real.inverse.joint_model_start`);
+    ``None`` where the library is restricted to other families, or (with the reason in ``skipped``)
+    where that estimate cannot be made."""
+    effects = tuple(kind(per_joint=True) for kind in JOINT_MODEL)
+    combo = Combo(effects, trajs[0])
+    if cfg.families and not {e.family for e in effects} <= set(cfg.families):
+        return None  # a library restricted to other families, as the singles are
+    try:
+        return _fit_per_joint(fitter, combo, joint_model_start(trajs, effects), cfg.screen_iter)
+    except CannotApply as err:
+        skipped.append({"effect": combo.label, "reason": str(err)})
+        return None
+
+
+def _fit_per_joint(fitter: Fitter, combo: Combo, start: np.ndarray, polish_iter: int) -> Candidate:
+    """Fit several per-joint effects together: Levenberg-Marquardt with each effect's derivatives
+    from one perturbed rollout (cross-joint terms dropped: 4 rollouts a Jacobian for the joint
+    model, not 4 per joint), then ``polish_iter`` iterations with every parameter's own, for what
+    couples the joints (a trunk on a rail, contacts). Rollouts count on ``fitter``."""
+    rough = fitter.on(fitter.rep, fitter.max_iter, blockwise=True)
+    polish = fitter.on(fitter.rep, polish_iter, blockwise=False)
+    candidate = _fit(polish, combo, [rough.fit(combo, [start]).x])
+    fitter.rollouts += rough.rollouts + polish.rollouts
+    return candidate
+
+
+def _pruned(candidate: Candidate, fitter: Fitter, rep_test: Replayer, floor: float, cfg: DiagnoseConfig) -> Candidate:
+    """Backward elimination by the parsimony rule (:func:`_parsimonious_first`): while leaving one
+    effect out (the others at their fit) raises the squared held-out gap by less than
+    ``cfg.tolerance`` x the squared ``floor``, leave out the one whose absence raises it least and
+    refit the rest. A joint model fitted where only two of its effects act keeps those two, and
+    is named by them."""
+    _evaluate(rep_test, [candidate])
+    current = candidate
+    while len(current.combo.effects) > 1:
+        parts = current.combo.split(current.x)
+        trials = [Candidate(Combo(current.combo.effects[:k] + current.combo.effects[k + 1:], current.combo.ref),
+                            np.concatenate(parts[:k] + parts[k + 1:]), float("nan"))
+                  for k in range(len(parts))]
+        _evaluate(rep_test, trials)
+        best = min(trials, key=lambda c: c.heldout_gap)
+        if best.heldout_gap**2 - current.heldout_gap**2 >= cfg.tolerance * floor**2:
+            break
+        current = _fit_per_joint(fitter, best.combo, best.x, cfg.screen_iter)
+        _evaluate(rep_test, [current])
+    return current
+
+
 def part_shares(candidate: Candidate, rep: Replayer) -> list[dict[str, Any]]:
     """Each part of a combined candidate, with its share of what the combination removes from the
     squared held-out gap: the gap comes back by ``gap_without² - gap²`` when that part alone is
@@ -641,9 +705,17 @@ def _verdict(ranked: list[Candidate], gap_before: float, floor: float, floor_bes
     return "unexplained", None
 
 
+def _named_values(c: Candidate) -> dict[str, float]:
+    """Parameter values by name; where two effects of a combination name a parameter alike
+    (every per-joint effect has ``added@<joint>``), by ``<effect name>.<parameter name>``."""
+    names = [p.name for p in c.combo.params]
+    owners = _owners(c.combo)
+    return {(f"{e.name}.{n}" if names.count(n) > 1 else n): float(v) for n, e, v in zip(names, owners, c.x)}
+
+
 def _row(c: Candidate, gap_before: float, floor: float, names: tuple[str, ...]) -> dict:
     return {"effect": c.combo.label, "family": c.combo.family, "nparam": c.nparam,
-            "parameters": {p.name: float(v) for p, v in zip(c.combo.params, c.x)},
+            "parameters": _named_values(c),
             "gap_train": c.train_gap, "gap_heldout": c.heldout_gap, "score": c.score,
             "gap_heldout_per_joint": {n: float(g) for n, g in zip(names, c.heldout_per_joint)},
             "shrink": 1.0 - c.heldout_gap / gap_before if gap_before > 0 else 0.0,
