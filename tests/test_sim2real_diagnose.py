@@ -12,7 +12,7 @@ from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _indistinguishable, _per_joint_mixture, at_bound,
                                          diagnose, median_draw, noise_floors, speed_ratio)
-from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, gap_rms, residuals, soft_l1_windows, undetermined
+from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, chains, gap_rms, residuals, soft_l1_windows, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
 from crisp_gym.sim2real.replay import Replayer, bind, make_windows
@@ -971,3 +971,28 @@ def test_noise_floor_draws_are_ordered_and_the_median_one_is_the_reported_floor(
     np.testing.assert_array_equal(median_draw(floors), floors[2])
     res = diagnose([(train, sc.model)], [(test, sc.model)], CFG)
     assert res.noise_floor == pytest.approx(overall[2], rel=1e-12)
+
+
+def test_independent_chains_share_a_perturbed_rollout_and_keep_every_derivative() -> None:
+    """The bench humanoid's legs hang from a fixed pelvis: a per-joint effect's derivatives on
+    the left leg and on the right one come from the same rollouts (12 for 24 parameters, plus
+    one for a shared effect), each read on its own leg's columns, and equal the derivatives of
+    one parameter perturbed at a time, cross-joint terms included."""
+    sc = scenario("humanoid", BenchConfig())
+    rng = np.random.default_rng(0)
+    t, u = commands(sc, rng)
+    tr = bind(synthesize(sc, {"family": "none"}, t, u, 1.0, rng), sc.model)
+    rep = Replayer([tr], make_windows([tr], 0.5))
+    assert sorted(np.unique(chains(tr), return_counts=True)[1]) == [12, 12]
+    combo = Combo((fx.ViscousDamping(per_joint=True), fx.CoulombFriction()), tr)
+    hi = np.array([p.hi for p in combo.params])
+    x, step = 0.2 * hi, 0.03 * hi
+    r = residuals(rep, [combo.inputs(x, [tr])])[0]
+    fitter = Fitter(rep)
+    jac = fitter._jacobian(combo, x, r, None, step, hi)
+    assert fitter.rollouts == 13 * len(rep.windows)
+    one_at_a_time = residuals(rep, [combo.inputs(x + step * (np.arange(len(x)) == i), [tr]) for i in range(len(x))])
+    expected = (one_at_a_time - r) / step[:, None, None, None]
+    assert np.abs(expected[0, ..., 1:12]).max() > 0.1 * np.abs(expected[0, ..., 0]).max()  # the hip moves the knee
+    assert np.abs(expected[:12, ..., 12:]).max() < 1e-9 * np.abs(expected).max()  # the left leg moves not the right
+    np.testing.assert_allclose(jac, expected, rtol=0, atol=1e-6 * np.abs(expected).max())

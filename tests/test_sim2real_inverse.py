@@ -62,7 +62,7 @@ def test_the_start_is_the_estimate_less_the_model_within_bounds():
 
 
 def test_a_model_with_degrees_of_freedom_the_log_lacks_cannot_be_regressed():
-    sc = scenario("humanoid", BenchConfig())  # a floating base the log does not hold
+    sc = scenario("humanoid", BenchConfig())  # its trunk and arms are not in the log
     rng = np.random.default_rng(0)
     t, u = commands(sc, rng)
     tr = nominal_run(sc, t, u)

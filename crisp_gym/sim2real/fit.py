@@ -3,7 +3,9 @@
 Least squares on the windowed position residual (optionally each window counted by a soft-L1
 loss above the noise, so that one diverging replay does not steer a fit) by Levenberg-Marquardt,
 so that every Jacobian (one perturbed model per parameter) is one batched rollout. Parameters
-that act on one joint each get a diagonal Jacobian from a single perturbed rollout. Two solvers share
+that act on one joint each get a diagonal Jacobian from a single perturbed rollout; beside other
+effects, a per-joint effect's parameters on chains that move independently (the legs of a fixed
+base) are perturbed in the same model, each read on its own chain. Two solvers share
 that Jacobian: MuJoCo's ``mujoco.minimize.least_squares`` (one trial step per rollout, its
 regulariser adapted from the predicted reduction) and the project's own (three damping
 values tried in one batched rollout per iteration); ``benchmarks/gap_lm.py`` compares them.
@@ -307,22 +309,31 @@ class Fitter:
                 jac[idx[0]] = (rp - r) / h[idx[0]]
             else:
                 for i, c in zip(idx, own):
-                    jac[i, ..., c] = (rp[..., c] - r[..., c]) / h[i]
+                    jac[i][..., c] = (rp[..., c] - r[..., c]) / h[i]
         return jac
 
-    def _blocks(self, combo: Combo) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    def _blocks(self, combo: Combo) -> list[tuple[np.ndarray, list[np.ndarray] | None]]:
         """The parameters perturbed together by :meth:`_jacobian`, each block with the residual
-        columns its parameters act on: with ``blockwise``, a per-joint effect's parameters (on
-        joints of their own) form one block; every other parameter is a block alone, with every
-        column."""
+        columns each of its parameters acts on. A per-joint effect's parameters (on joints of
+        their own) share a rollout when their joints hang on independent chains (the legs of a
+        fixed base: :func:`chains`), each read on its own chain's columns, which is exact but
+        for contact between the chains (and not done under the robust loss, whose weight of a
+        window mixes every column); with ``blockwise``, they all share one, each read on its own
+        joint only (the cross-joint terms dropped). Every other parameter is a block alone, with
+        every column."""
         offsets = np.cumsum([0] + combo.sizes[:-1])
-        blocks: list[tuple[np.ndarray, np.ndarray | None]] = []
+        chain = chains(combo.ref) if self.robust_scale is None else np.zeros(len(combo.ref.dadr), dtype=int)
+        blocks: list[tuple[np.ndarray, list[np.ndarray] | None]] = []
         for e, n, at in zip(combo.effects, combo.sizes, offsets):
-            own = e.columns(combo.ref) if self.blockwise and e.per_joint else None
-            if own is not None and len(own) == n and len(np.unique(own)) == n:
-                blocks.append((at + np.arange(n), own))
-            else:
+            own = e.columns(combo.ref) if e.per_joint else None
+            if own is None or len(own) != n or len(np.unique(own)) != n:
                 blocks += [(np.array([at + i]), None) for i in range(n)]
+            elif self.blockwise:
+                blocks.append((at + np.arange(n), [np.array([c]) for c in own]))
+            else:  # the k-th parameter of every chain in one rollout
+                rank = np.array([np.sum(chain[own[:i]] == chain[c]) for i, c in enumerate(own)])
+                blocks += [(at + idx, [np.flatnonzero(chain == chain[own[i]]) for i in idx])
+                           for idx in (np.flatnonzero(rank == k) for k in range(rank.max() + 1))]
         return blocks
 
     def _descend(self, combo: Combo, x: np.ndarray, r: np.ndarray, cost: float, lo: np.ndarray, hi: np.ndarray,
@@ -438,3 +449,15 @@ def undetermined(jac: np.ndarray, span: np.ndarray, tol: float = 1e-6) -> np.nda
     u, sv, _ = np.linalg.svd(jac * span[:, None], full_matrices=False)
     null = u[:, sv <= tol * max(float(sv.max(initial=0.0)), 1e-300)]
     return np.any(np.abs(null) > 1e-3, axis=1)
+
+
+def chains(tr: Trajectory) -> np.ndarray:
+    """For each logged joint, the root degree of freedom of the moving chain it hangs on. Joints
+    on different roots (the legs of a fixed base) move independently unless they touch."""
+    parent = tr.model.dof_parentid
+    roots = []
+    for d in tr.dadr:
+        while parent[d] >= 0:
+            d = parent[d]
+        roots.append(d)
+    return np.array(roots)

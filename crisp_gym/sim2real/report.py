@@ -18,7 +18,7 @@ from crisp_gym.sim2real.diagnose import HELDOUT_LOGS, Diagnosis
 EXTRAPOLATION_RATIO = 1.5
 """Held-out joint speeds more than this factor above (or below) the fitted ones are flagged."""
 PLOT_LABEL_CHARS = 50
-"""Candidate labels longer than this are cut on the ranking plot's axis (``report.md`` has them whole)."""
+"""Candidate labels longer than this are cut on the plots (``report.md`` has them whole)."""
 REPORT_KEYS = ("verdict", "where", "ranking", "selected", "gap_before", "gap_after_heldout", "shrink")
 
 
@@ -171,6 +171,9 @@ def _plots(result: Diagnosis, out: Path) -> list[str]:
     sel = result.selected or result.closest
     files = []
 
+    def cut(label: str) -> str:  # a per-joint mixture's label lists every joint (the tables have it whole)
+        return label if len(label) <= PLOT_LABEL_CHARS else label[:PLOT_LABEL_CHARS - 1] + "…"
+
     # Overlay: the held-out windows of the worst joint with the largest gap before.
     j = names.index(result.where["worst_joint"])
     err = np.sqrt(np.sum((rp.pred_before[..., j] - rp.target[..., j]) ** 2 * rp.mask, axis=1))
@@ -180,12 +183,13 @@ def _plots(result: Diagnosis, out: Path) -> list[str]:
         t = rp.dt * np.arange(1, n + 1)
         ax.plot(t, rp.target[k, :n, j], "k", label="real")
         ax.plot(t, rp.pred_before[k, :n, j], "C3--", label="sim before")
-        ax.plot(t, rp.pred_after[k, :n, j], "C2", label=f"sim + {sel['effect']}" if sel else "sim after")
+        ax.plot(t, rp.pred_after[k, :n, j], "C2", label=cut(f"sim + {sel['effect']}") if sel else "sim after")
         ax.set_xlabel("time in window (s)")
         ax.set_title(f"{names[j]}, window {k}", fontsize=9)
     axes[0][0].set_ylabel("position (rad)")
-    axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
+    # below the panels: inside one, a joint model's label squeezed the panels and covered an axis
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="lower center", ncols=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.savefig(out / "overlay.png", dpi=90)
     plt.close(fig)
     files.append("overlay.png")
@@ -218,9 +222,7 @@ def _plots(result: Diagnosis, out: Path) -> list[str]:
 
     rank = result.ranking[:12]
     fig, ax = plt.subplots(figsize=(7, 0.3 * len(rank) + 1.2))
-    # a per-joint mixture's label lists every joint: cut for the axis (the table has it whole)
-    labels = [r["effect"] if len(r["effect"]) <= PLOT_LABEL_CHARS else r["effect"][:PLOT_LABEL_CHARS - 1] + "…"
-              for r in rank]
+    labels = [cut(r["effect"]) for r in rank]
     ax.barh(labels[::-1], [r["gap_heldout"] for r in rank][::-1])
     ax.axvline(result.gap_before, color="C3", label="before")
     ax.axvline(result.noise_floor, color="k", ls="--", label="noise floor")
