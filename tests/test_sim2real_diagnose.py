@@ -11,7 +11,7 @@ import pytest
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
 from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _indistinguishable, _per_joint_mixture, at_bound,
-                                         diagnose, median_draw, noise_floors, speed_ratio)
+                                         diagnose, forward_bases, median_draw, noise_floors, speed_ratio)
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, chains, gap_rms, residuals, soft_l1_windows, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -996,3 +996,20 @@ def test_independent_chains_share_a_perturbed_rollout_and_keep_every_derivative(
     assert np.abs(expected[0, ..., 1:12]).max() > 0.1 * np.abs(expected[0, ..., 0]).max()  # the hip moves the knee
     assert np.abs(expected[:12, ..., 12:]).max() < 1e-9 * np.abs(expected).max()  # the left leg moves not the right
     np.testing.assert_allclose(jac, expected, rtol=0, atol=1e-6 * np.abs(expected).max())
+
+
+def test_a_richer_form_above_the_last_base_is_a_base_of_its_own() -> None:
+    """Forward selection's bases are the best singles of distinct families; gearbox friction
+    shares load friction's family, so where it ranks second (behind load friction on every
+    joint, ahead of the next family) only the extra rule makes it a base. Below the last base,
+    or as the best single itself, it is not added twice or at all."""
+    def single(effect: type, label: str):
+        return SimpleNamespace(combo=SimpleNamespace(family=effect.family, label=label, effects=(effect(),)))
+
+    load, gearbox = single(fx.LoadFriction, "load[per-joint]"), single(fx.GearboxFriction, "gearbox[thigh]")
+    gain, delay = single(fx.GainScale, "gain[per-joint]"), single(fx.ActuatorDelay, "delay[thigh]")
+    assert forward_bases([load, gearbox, gain, delay], 2) == [load, gain, gearbox]
+    assert forward_bases([load, gain, gearbox, delay], 2) == [load, gain]  # below the last base
+    assert forward_bases([gearbox, load, gain, delay], 2) == [gearbox, gain]  # a base by the first rule
+    assert forward_bases([load, gearbox], 2) == [load]  # one family: the richer form is above no other base
+    assert forward_bases([], 2) == []

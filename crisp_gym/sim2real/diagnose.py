@@ -49,7 +49,8 @@ class DiagnoseConfig:
             excitation changes with time (a frequency sweep), where the end alone would also
             test how the fit extrapolates to the fastest moves.
         bases: forward selection holds each of this many best single effects (of distinct
-            families) and screens every other effect on top of it.
+            families; and a richer form of an effect ranked above the last of them,
+            :func:`forward_bases`) and screens every other effect on top of it.
         pairs: forward selection fits this many of the best screened pairs jointly.
         screen_iter: Levenberg-Marquardt iterations of each screening fit (an effect fitted
             together with one of the best, both from their single fits).
@@ -519,21 +520,19 @@ def _refinements(effects: list[Effect], singles: list[Candidate], ref: Trajector
 def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, rep_test: Replayer,
                    cfg: DiagnoseConfig, floor_j: np.ndarray, focus: str) -> list[Candidate]:
     """Forward selection's second step. Each of the ``cfg.bases`` best single effects (held-out
-    gap, distinct families) is a base, and every single effect of another family (for the bases
-    after the best, the ``cfg.later_base_partners`` best ones) is fitted together with it for a
-    few iterations, both from their single fits (the screen: per-joint effects' derivatives
-    blockwise, so a screen costs about two single fits). The new effect no longer has to soak up
-    the base, as it does when fitted alone, and the base gives back what it soaked up of the new
-    one, as a base held at its fit cannot. So are the library's effects confined to the joint
+    gap, distinct families; and a richer form of one above them, :func:`forward_bases`) is a
+    base, and every single effect of another family (for the bases after the best, the
+    ``cfg.later_base_partners`` best ones) is fitted together with it for a few iterations, both
+    from their single fits (the screen: per-joint effects' derivatives blockwise, so a screen
+    costs about two single fits). The new effect no longer has to soak up the base, as it does
+    when fitted alone, and the base gives back what it soaked up of the new one, as a base held
+    at its fit cannot. So are the library's effects confined to the joint
     the base leaves worst, when that is not the joint the singles were confined to (a second
     effect on another joint). The ``cfg.pairs`` pairs whose screens leave the smallest held-out
     gaps are then fitted fully. More than one base, because an effect fitted alone may stand in
     for a relative of the true one (a sensor delay for an actuator delay beside friction)."""
     ranked = sorted(singles, key=lambda c: c.heldout_gap)
-    bases: list[Candidate] = []
-    for c in ranked:
-        if len(bases) < cfg.bases and all(c.combo.family != b.combo.family for b in bases):
-            bases.append(c)
+    bases = forward_bases(ranked, cfg.bases)
     names = ref.log.joint_names
     screen = fitter.on(fitter.rep, cfg.screen_iter, restarts=0, blockwise=True)
     screened: list[Candidate] = []
@@ -563,6 +562,23 @@ def _forward_pairs(singles: list[Candidate], ref: Trajectory, fitter: Fitter, re
     for k in np.argsort([c.heldout_gap for c in screened])[:cfg.pairs]:
         out.append(_fit(fitter, screened[k].combo, [screened[k].x]))
     return out
+
+
+def forward_bases(ranked: list[Candidate], n: int) -> list[Candidate]:
+    """Forward selection's bases among the single effects ``ranked`` (best first): the ``n`` best
+    of distinct families, then every richer form of an effect (:attr:`Effect.refines`: gearbox
+    friction of load friction) that ranks above the last of them. It shares its simpler form's
+    family, so it is never a base by the first rule, and in the pairs of the simpler form's base
+    the simpler form stands in for it."""
+    bases: list[Candidate] = []
+    for c in ranked:
+        if len(bases) < n and all(c.combo.family != b.combo.family for b in bases):
+            bases.append(c)
+    if not bases:
+        return bases
+    last = next(k for k, c in enumerate(ranked) if c is bases[-1])
+    return bases + [c for c in ranked[:last] if c.combo.effects[0].refines is not None
+                    and all(c is not b for b in bases)]
 
 
 def _per_joint_mixture(singles: list[Candidate], ref: Trajectory, fitter: Fitter) -> Candidate | None:
