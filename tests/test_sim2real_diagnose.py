@@ -10,8 +10,9 @@ import pytest
 
 from crisp_gym.sim2real import effects as fx
 from crisp_gym.sim2real.bench import GO2_XML, BenchConfig, commands, scenario, synthesize
-from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _indistinguishable, _per_joint_mixture, at_bound,
-                                         diagnose, forward_bases, median_draw, noise_floors, speed_ratio)
+from crisp_gym.sim2real.diagnose import (Candidate, DiagnoseConfig, _indistinguishable, _parsimonious_first,
+                                         _per_joint_mixture, _supported, at_bound, diagnose, forward_bases, median_draw,
+                                         noise_floors, noise_spread, speed_ratio)
 from crisp_gym.sim2real.fit import Combo, Fitter, Frozen, chains, gap_rms, residuals, soft_l1_windows, undetermined
 from crisp_gym.sim2real.log import RealLog
 from crisp_gym.sim2real.models import ServoConfig, add_support_slot, build_servo_pendulum_spec
@@ -770,6 +771,71 @@ def test_actuator_effects_leave_out_the_joints_no_actuator_drives() -> None:
     assert params["viscous_damping[per-joint]"] == ["added@rail", "added@hip", "added@knee"]
 
 
+def test_a_combination_keeps_only_parts_the_fitted_windows_see() -> None:
+    """On an arm log with a PD gain error on one joint and added damping on another, leaving
+    out either part at its true value raises the squared gap by more than noise alone moves it
+    (the noise draws' spread); on a log with the gain error alone, the same pair with damping
+    held near none does not, and neither does a pair whose second part (an encoder bias of a
+    tenth of the noise) changes nothing."""
+    from crisp_gym.sim2real.bench import driven_joints
+
+    gain_joint, damped_joint = driven_joints(scenario("arm", BenchConfig()))[1:3]
+    gain = {"family": "pd_gain", "effect": "pd_gain_scale", "joint": gain_joint, "x": [1.6], "x0": [1.0]}
+    damping = {"family": "viscous_damping", "effect": "viscous_damping", "joint": damped_joint, "x": [1.0],
+               "x0": [0.0]}
+    pair = (fx.GainScale(joints=(gain_joint,)), fx.ViscousDamping(joints=(damped_joint,)))
+    for truth, x, supported in (({"family": "compound", "effect": "compound", "parts": [gain, damping]},
+                                 [1.6, 1.0], True),
+                                (gain, [1.6, 0.005], False)):
+        sc, tr = _arm_log(truth)
+        rep = Replayer([tr], make_windows([tr], 0.3))
+        spread = noise_spread(noise_floors(rep, 0))
+        candidate = Candidate(Combo(pair, tr), np.array(x), 0.0)
+        skipped: list[dict[str, str]] = []
+        assert _supported([candidate], rep, spread, skipped) == ([candidate] if supported else [])
+        assert [s["effect"] for s in skipped] == ([] if supported else [candidate.combo.label])
+    bias = Candidate(Combo((pair[0], fx.EncoderBias(joints=(damped_joint,))), tr),
+                     np.array([1.6, 0.1 * sc.sigma]), 0.0)
+    skipped = []
+    assert _supported([bias], rep, spread, skipped) == []
+    assert skipped[0]["reason"].startswith(f"encoder_bias[{damped_joint}] does not earn its place")
+
+
+def test_at_equal_parameter_counts_one_effect_is_simpler_than_a_mixture() -> None:
+    """A per-joint mixture (damping on the rail, gains on the hip and knee: three parameters in
+    two effects) and one effect on every joint (damping per joint: three in one) whose held-out
+    gaps differ by less than the noise: parsimony puts the single effect first, as it would
+    one with fewer parameters; beyond the noise the mixture keeps its place."""
+    tr = _rail_leg_template()
+    mixture = Candidate(Combo((fx.ViscousDamping(joints=("rail",), per_joint=True),
+                               fx.GainScale(joints=("hip", "knee"), per_joint=True)), tr), np.ones(3), 0.0,
+                        heldout_gap=1.00, score=1.0)
+    single = Candidate(Combo((fx.ViscousDamping(per_joint=True),), tr), np.ones(3), 0.0, heldout_gap=1.05, score=1.1)
+    assert mixture.nparam == single.nparam == 3
+    assert _parsimonious_first([mixture, single], floor=0.5, tolerance=1.0)[0] is single
+    assert _parsimonious_first([mixture, single], floor=0.1, tolerance=1.0)[0] is mixture
+
+
+def test_a_links_mass_is_also_tried_on_each_body_below_the_focus_joint() -> None:
+    """A light tool shows most at the joints that carry it, so the gap's focus may be a joint
+    above the link whose mass is off. Mass scale is tried confined to the focus and to each
+    body below it: on the arm's chain every later joint; on the humanoid one joint per body
+    of the leg (its three hinges move the same bodies), never a body of the other leg."""
+    from crisp_gym.sim2real.bench import _template
+
+    def template(name: str):
+        sc = scenario(name, BenchConfig())
+        return _template(sc, *commands(sc, np.random.default_rng(0)))
+
+    arm = template("arm")
+    assert fx.joints_below(arm, "arm2") == ["arm3", "arm4", "arm5", "arm6"]
+    assert fx.joints_below(arm, "arm6") == []
+    labels = [e.label for e in fx.library(arm, focus="arm4")]
+    assert {"mass_scale[arm4]", "mass_scale[arm5]", "mass_scale[arm6]"} <= set(labels)
+    assert "mass_scale[arm3]" not in labels and "com_shift[arm6]" not in labels
+    assert fx.joints_below(template("humanoid"), "R_Hip_x") == ["R_Knee_x", "R_Ankle_x", "R_Toe_x"]
+
+
 def test_per_joint_mixture_gives_each_joint_the_best_effect_with_a_parameter_there() -> None:
     """Gains per joint win the hip, damping the knee; the rail, where the gain has no
     parameter, goes to damping even though the gain's fit left the rail's gap smaller. The
@@ -833,6 +899,31 @@ def test_bench_credits_a_truth_named_indistinguishable_apart_from_the_winner():
     assert not row["correct"] and not row["correct_or_indistinguishable"] and row["indistinguishable"] == 0
 
 
+@pytest.mark.parametrize("timestep", [1 / 120, 1 / 500])
+def test_a_gap_end_yields_by_its_compliance_times_the_force_it_holds(timestep: float) -> None:
+    """A rotor pushed into its gap's end by a constant motor torque, the joint held by a spring:
+    MuJoCo's own simulation, once at rest, has the end pressed in by limit_compliance x the
+    torque, for pressings deeper than the limit's impedance width (1 mm), at a 120 Hz step
+    (where it rivals the gap) and at 500 Hz (where it is ten times smaller)."""
+    for torque in (3.0, 4.5):
+        spec = mujoco.MjSpec()
+        spec.option.timestep = timestep
+        spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+        link = spec.worldbody.add_body(name="link", mass=1.0, inertia=[0.1] * 3, explicitinertial=True)
+        link.add_joint(name="j", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], stiffness=200.0, damping=5.0)
+        spec.add_actuator(name="motor", target="j", trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        fx.add_rotors(spec, ["j"], [0.002], timestep)
+        model = spec.compile()
+        data = mujoco.MjData(model)
+        data.ctrl[0] = torque
+        mujoco.mj_step(model, data, nstep=int(3.0 / timestep))
+        assert np.abs(data.qvel).max() < 1e-6  # at rest
+        tendon = model.tendon("j_play").id
+        depth = data.ten_length[tendon] - model.tendon_range[tendon, 1]
+        assert depth > model.tendon_solimp_lim[tendon, 2]
+        assert depth == pytest.approx(fx.limit_compliance(model, np.array([tendon]))[0] * torque, rel=1e-6)
+
+
 def test_rotor_track_follows_the_simulated_rotor_closer_than_its_force_balance() -> None:
     """A noise-free log of the library's own gear model (arm, 0.02 rad gaps on every drive), its
     rotors' true places in their gaps kept: rotor_track, which sees only the log, finds them to
@@ -854,7 +945,8 @@ def test_rotor_track_follows_the_simulated_rotor_closer_than_its_force_balance()
                     qvel=full[:, 1 + model.nq + tr.dadr])
     q = exact.log.qpos[:, rotors.cols]
     truth = full[:, 1 + rotors.qadr] - q
-    offset, _ = rotor_track(b, exact, model, inputs.ctrl[0], rotors.cols, rotors.dadr, rotors.actuators)
+    offset, _ = rotor_track(b, exact, model, inputs.ctrl[0], rotors.cols, rotors.dadr, rotors.actuators,
+                            fx.limit_compliance(model, rotors.tendons))
     drives = np.concatenate(rotors.actuators)  # one position servo per joint on the arm
     gain, stiffness = model.actuator_gainprm[drives, 0], -model.actuator_biasprm[drives, 1]
     target = inputs.ctrl[0][::tr.nsub][:, drives] * gain / stiffness

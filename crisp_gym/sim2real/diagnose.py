@@ -87,10 +87,12 @@ class DiagnoseConfig:
         nthread: rollout threads.
         seed: seed of the noise-floor synthesis.
         families: restrict the library to these effect families (empty: all).
-        tolerance: a candidate with fewer parameters replaces the best one when their
-            squared held-out gaps differ by less than tolerance x the squared floor
-            (the larger of the nominal model's and the best candidate's median draws): below the noise,
-            a richer model has not earned its parameters.
+        tolerance: a simpler candidate (fewer parameters, or as many in fewer effects) replaces
+            the best one when their squared held-out gaps differ by less than tolerance x the
+            squared floor (the larger of the nominal model's and the best candidate's median
+            draws): below the noise, a richer model has not earned its parameters. A pair or
+            mixture is kept only if leaving out any one part raises its squared training gap by
+            at least tolerance x :func:`noise_spread` of the nominal model's draws.
         bootstrap: refits for the parametric-bootstrap intervals of an explained winner
             (fewer than 3: the sandwich covariance, which ignores the bias of replay fits).
         floor_draws: noise draws of the noise floors: the median draw is the nominal
@@ -242,6 +244,15 @@ def _overall(floor_j: np.ndarray) -> float:
     return float(np.sqrt(np.mean(floor_j**2)))
 
 
+def noise_spread(floors: np.ndarray) -> float:
+    """How far noise alone moves the squared gap: the range of the squared overall gaps of
+    :func:`noise_floors`' draws. Small where replays are smooth (an arm: a tenth of the squared
+    floor); where impacts or stamping feet make windows diverge with the noise, larger than
+    the squared floor itself."""
+    squares = np.mean(floors**2, axis=1)
+    return float(squares.max() - squares.min())
+
+
 def bootstrap_interval(fitter: Fitter, candidate: Candidate, draws: int, seed: int, sandwich_sd: np.ndarray,
                        max_iter: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """95 % intervals by parametric bootstrap: refit ``candidate`` on ``draws`` sets of
@@ -348,7 +359,8 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     r0_test = residuals(rep_test, [nominal_inputs(tr_test)])[0]
     r0_train = residuals(rep_train, [nominal_inputs(tr_train)])[0]
     gap_before = gap_rms(r0_test, rep_test.mask)
-    floor_j = median_draw(noise_floors(rep_test, cfg.seed, draws=cfg.floor_draws))
+    floor_draws = noise_floors(rep_test, cfg.seed, draws=cfg.floor_draws)
+    floor_j = median_draw(floor_draws)
     floor = _overall(floor_j)
 
     rep_all = Replayer(tr_train + tr_test, _concat_windows(rep_train, rep_test), cfg.nthread)
@@ -377,6 +389,7 @@ def _diagnose(train: list[tuple[RealLog, mujoco.MjModel | mujoco.MjSpec]],
     combined = _forward_pairs(candidates, tr_train[0], fitter, rep_test, cfg, floor_j, focus)
     mixture = _per_joint_mixture(candidates, tr_train[0], fitter) if len(names) > 1 else None
     combined += [mixture] if mixture is not None else []
+    combined = _supported(combined, rep_train, cfg.tolerance * noise_spread(floor_draws), skipped)
     _evaluate(rep_test, combined)
     candidates += combined
     joint_model = _joint_model_fit(tr_train, fitter, cfg, skipped) if cfg.inverse_dynamics else None
@@ -661,30 +674,65 @@ def _pruned(candidate: Candidate, fitter: Fitter, rep_test: Replayer, floor: flo
     return current
 
 
+def gaps_without_each_part(candidate: Candidate, rep: Replayer) -> tuple[float, list[float]]:
+    """The gap of a combined candidate on ``rep``'s windows, and its gap with each part left
+    out in turn (the others held at their fit)."""
+    effects, parts = candidate.combo.effects, candidate.combo.split(candidate.x)
+    ref = rep.trajs[0]
+    combos = [Combo(tuple(Frozen(e, xe) for j, (e, xe) in enumerate(zip(effects, parts)) if j != i), ref)
+              for i in range(-1, len(effects))]  # -1: every part
+    r = residuals(rep, [c.inputs(np.zeros(0), rep.trajs) for c in combos])
+    gaps = [gap_rms(ri, rep.mask) for ri in r]
+    return gaps[0], gaps[1:]
+
+
+def _supported(combined: list[Candidate], rep_train: Replayer, threshold: float,
+               skipped: list[dict[str, str]]) -> list[Candidate]:
+    """The combinations whose every part earns its place on the windows it was fitted on:
+    leaving it out (the others at their fit) raises the squared training gap by at least
+    ``threshold`` (the tolerance x :func:`noise_spread`: more than noise alone moves it). A part
+    that does less is not seen in the data it was fitted to, and what it seems to add held out
+    is chance: where replays have impacts or stamping feet, any small change makes some windows
+    diverge differently (a gear play's pair with a ground 0.1 mm lower halved its held-out gap).
+    The others go to ``skipped``, with the idle parts."""
+    kept = []
+    for c in combined:
+        gap, without = gaps_without_each_part(c, rep_train)
+        idle = [e.label for e, g in zip(c.combo.effects, without) if g**2 - gap**2 < threshold]
+        if idle:
+            skipped.append({"effect": c.combo.label, "reason": f"{' and '.join(idle)} does not earn its place: left "
+                            "out, the training gap rises less than noise alone moves it"})
+        else:
+            kept.append(c)
+    return kept
+
+
 def part_shares(candidate: Candidate, rep: Replayer) -> list[dict[str, Any]]:
     """Each part of a combined candidate, with its share of what the combination removes from the
     squared held-out gap: the gap comes back by ``gap_without² - gap²`` when that part alone is
     left out (the others held at their fit); shares are those rises, normalised."""
-    effects, parts = candidate.combo.effects, candidate.combo.split(candidate.x)
+    effects = candidate.combo.effects
     if len(effects) < 2:
         return []
-    ref = rep.trajs[0]
-    combos = [Combo(tuple(Frozen(e, xe) for j, (e, xe) in enumerate(zip(effects, parts)) if j != i), ref)
-              for i in range(len(effects))]
-    r = residuals(rep, [c.inputs(np.zeros(0), rep.trajs) for c in combos])
-    without = [gap_rms(ri, rep.mask) for ri in r]
+    _, without = gaps_without_each_part(candidate, rep)
     rise = np.maximum(np.array(without) ** 2 - candidate.heldout_gap**2, 0.0)
     shares = rise / rise.sum() if rise.sum() > 0 else np.full(len(rise), 1.0 / len(rise))
     return [{"effect": e.label, "share": float(sh), "gap_without": float(g)}
             for e, sh, g in zip(effects, shares, without)]
 
 
+def _simpler(a: Candidate, b: Candidate) -> bool:
+    """Whether ``a`` is the simpler model: fewer parameters, or as many in fewer effects (one
+    effect on every joint rather than a per-joint mixture of four)."""
+    return (a.nparam, len(a.combo.effects)) < (b.nparam, len(b.combo.effects))
+
+
 def _parsimonious_first(ranked: list[Candidate], floor: float, tolerance: float) -> list[Candidate]:
-    """Move the simplest candidate indistinguishable from the best (at the noise level)
-    to the front."""
+    """Move the simplest candidate (:func:`_simpler`) indistinguishable from the best (at the
+    noise level) to the front."""
     best = ranked[0]
     while True:
-        simpler = [c for c in ranked if c.nparam < best.nparam
+        simpler = [c for c in ranked if _simpler(c, best)
                    and c.heldout_gap**2 <= best.heldout_gap**2 + tolerance * floor**2]
         if not simpler:
             break

@@ -59,7 +59,7 @@ from crisp_gym.sim2real.effects.loads import (
     lever_scale,
     release_inertial_frame,
 )
-from crisp_gym.sim2real.effects.gear_play import GearPlay, add_rotors, rotor_track
+from crisp_gym.sim2real.effects.gear_play import GearPlay, add_rotors, limit_compliance, rotor_track
 from crisp_gym.sim2real.effects.signals import ActuatorDelay, Backlash, EncoderBias, SensorDelay
 from crisp_gym.sim2real.replay import Trajectory
 
@@ -69,8 +69,8 @@ __all__ = [
     "GearboxFriction", "GroundFriction", "GroundHeight", "GroundTilt", "LoadFriction", "MassScale", "Param",
     "Payload", "SensorDelay", "Signals", "StribeckFriction", "SupportBox", "TorqueSaturation", "ViscousDamping",
     "actuator_torque", "add_point_mass", "add_rotors", "check_families", "external_torque", "ground_geoms",
-    "ground_top", "inertia_scale", "joint_actuators", "lever_scale", "library", "release_inertial_frame",
-    "rotor_track", "speed_scale", "support_points", "torque_scale",
+    "ground_top", "inertia_scale", "joint_actuators", "joints_below", "lever_scale", "library",
+    "limit_compliance", "release_inertial_frame", "rotor_track", "speed_scale", "support_points", "torque_scale",
 ]
 
 
@@ -92,9 +92,27 @@ def check_families(families: tuple[str, ...]) -> None:
         raise ValueError(f"unknown effect families {unknown}; the library's are {', '.join(FAMILIES)}")
 
 
+def joints_below(tr: Trajectory, joint: str) -> list[str]:
+    """The logged joints of the bodies below ``joint``'s body, one per body (the first logged
+    of a body's joints: the others move the same bodies), in the log's order."""
+    model, names = tr.model, tr.log.joint_names
+    top = int(model.jnt_bodyid[model.joint(joint).id])
+    out, bodies = [], set()
+    for name in names:
+        body = int(model.jnt_bodyid[model.joint(name).id])
+        above = int(model.body_parentid[body])
+        while above > 0 and above != top:
+            above = int(model.body_parentid[above])
+        if body != top and above == top and body not in bodies:
+            bodies.add(body)
+            out.append(name)
+    return out
+
+
 def library(tr: Trajectory, focus: str | None = None, families: tuple[str, ...] | None = None) -> list[Effect]:
     """Candidate effects for a log: each effect shared by all joints; for joint effects
-    on a multi-joint log, also one confined to ``focus`` (the joint with the largest gap)
+    on a multi-joint log, also one confined to ``focus`` (the joint with the largest gap),
+    for ``below_focus`` effects one confined to each body below it (:func:`joints_below`),
     and one with a parameter per joint. Effects that cannot act (no ground) are left out."""
     out: list[Effect] = []
     n = len(tr.log.joint_names)
@@ -104,6 +122,8 @@ def library(tr: Trajectory, focus: str | None = None, families: tuple[str, ...] 
         variants = [kind()]
         if n > 1 and focus is not None and (kind.per_joint_allowed or kind.focus_allowed):
             variants.append(kind(joints=(focus,)))
+        if n > 1 and focus is not None and kind.below_focus:
+            variants.extend(kind(joints=(j,)) for j in joints_below(tr, focus))
         if n > 1 and kind.per_joint_allowed:
             variants.append(kind(per_joint=True))
         out.extend(v for v in variants if v.applicable(tr))

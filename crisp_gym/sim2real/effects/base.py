@@ -52,10 +52,12 @@ class Effect:
 
     Scopes: every effect is tried shared by all joints; on multi-joint logs also with one
     parameter per joint (``per_joint_allowed``) and confined to the joint with the largest
-    gap (``per_joint_allowed`` or ``focus_allowed``). ``on_drives``: the effect acts through the
-    actuators (their gains, limits, commands), so its joints are only those an actuator drives
-    directly: a per-joint variant has no parameter for an unactuated joint (a leg's rail), which
-    nothing it changes could move. ``refine``: the number of best start
+    gap (``per_joint_allowed`` or ``focus_allowed``); ``below_focus``: also confined to each body
+    that joint carries (a link's load shows at the joints that carry it, more than at its own
+    joint). ``on_drives``: the effect acts through the actuators (their gains, limits,
+    commands), so its joints are only those an actuator drives directly: a per-joint variant
+    has no parameter for an unactuated joint (a leg's rail), which nothing it changes could
+    move. ``refine``: the number of best start
     points the fit descends from, for effects with several local minima. ``refines``: the
     name of a simpler effect this one elaborates (gearbox friction contains load friction as
     a special case); the diagnosis fits it only where that one, in the same scope, ranks among
@@ -72,6 +74,7 @@ class Effect:
     adds_state = False  # replays on a model with parts the log's lacks (:meth:`extended_model`)
     per_joint_allowed = True
     focus_allowed = False
+    below_focus = False  # also confined to each body below the focus joint's
     on_drives = False  # acts through the actuators: its joints are the driven ones
     refine = 1  # how many of the best start points are descended from (several local minima)
     refines: str | None = None  # the simpler effect this one elaborates (fitted only where that one ranks well)

@@ -115,6 +115,7 @@ class GearPlay(Effect):
         # rotor_track, each rotor alone against its joint's logged motion.
         rotors = self._build(tr)[2]
         offset, speed = rotor_track(x[0], tr, model, ctrl, rotors.cols, rotors.dadr, rotors.actuators,
+                                    limit_compliance(model, rotors.tendons),
                                     last=int(samples.max()))  # the samples after the last start are not needed
         nq1 = 1 + model.nq
         out = states.copy()
@@ -124,16 +125,34 @@ class GearPlay(Effect):
         return out
 
 
+def limit_compliance(model: mujoco.MjModel, tendons: np.ndarray) -> np.ndarray:
+    """(R,) how far each tendon's limit yields per unit of force it holds (rad per N·m).
+
+    MuJoCo's limits are soft: at rest a limit holding force ``f`` is pressed in by
+    ``f · R / (k · d)``, with impedance ``d`` (``solimp``'s second value, that of a deep
+    penetration), stiffness ``k = 1 / (d² τ² ζ²)`` from ``solref = (τ, ζ)`` (τ at least two
+    time steps, as MuJoCo clamps it) and regulariser ``R = (1 - d) / d`` times the tendon's
+    inverse weight. At a 120 Hz step a light rotor's gap end yields by as much as the gap's
+    half-width under a drive's load."""
+    tau, zeta = model.tendon_solref_lim[tendons].T
+    if np.any(tau <= 0):
+        raise ValueError("limit_compliance takes limits given by time constant and damping ratio (solref > 0)")
+    d = model.tendon_solimp_lim[tendons, 1]
+    stiffness = 1.0 / (d**2 * np.maximum(tau, 2 * model.opt.timestep) ** 2 * zeta**2)
+    return (1 - d) / d * model.tendon_invweight0[tendons] / (stiffness * d)
+
+
 def rotor_track(half_width: float, tr: Trajectory, model: mujoco.MjModel, ctrl: np.ndarray, cols: np.ndarray,
-                rotor_dofs: np.ndarray, actuators: list[np.ndarray],
+                rotor_dofs: np.ndarray, actuators: list[np.ndarray], compliance: np.ndarray,
                 last: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(T, R) each rotor's place in its gap (rotor minus joint) and its speed at every log sample
     up to ``last`` (default: the log's last; T = last + 1), integrated at the log's rate from its
     drive's law on the logged commands (``ctrl``, fine grid), the joint following its log.
     Inside the gap a rotor turns under its drive alone (the drive's stiffness and damping taken
     implicitly; a saturated drive's clamped force with only its passive damping, the drives of
-    one joint clamped together); at either end it moves with the joint. It starts where the
-    drive's force balance puts it."""
+    one joint clamped together); at either end it moves with the joint, pressed into the end by
+    ``compliance`` (:func:`limit_compliance`) times the force its drive holds there. It starts
+    where the drive's force balance puts it."""
     end = len(tr.log.time) if last is None else last + 1
     dt, q, v = tr.log.dt, tr.log.qpos[:end, cols], tr.qvel[:end, cols]
     u, enabled = ctrl[::tr.nsub][:end], tr.enabled[:end]
@@ -163,7 +182,11 @@ def rotor_track(half_width: float, tr: Trajectory, model: mujoco.MjModel, ctrl: 
         theta = theta + dt * omega
         rel = theta - q[t]
         at_end = np.abs(rel) > half_width  # at an end of the gap: the rotor moves with the joint
-        theta = np.where(at_end, q[t] + np.sign(rel) * half_width, theta)
+        side = np.sign(rel)
+        # the force that presses it into that end, the end yielding by compliance x force
+        held = np.clip((drive[t] - k * (q[t] + side * half_width) - damp[t] * v[t]) / (1 + k * compliance), lo, hi)
+        press = compliance * np.maximum(side * (held - passive * v[t]), 0.0)
+        theta = np.where(at_end, q[t] + side * (half_width + press), theta)
         omega = np.where(at_end, v[t], omega)
         offset[t], speed[t] = theta - q[t], omega
     return offset, speed

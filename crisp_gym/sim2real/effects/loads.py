@@ -14,10 +14,11 @@ from crisp_gym.sim2real.replay import Trajectory
 
 class MassScale(Effect):
     """The links are heavier or lighter than modelled (payload, wrong CAD densities):
-    masses and inertias of every body moved by a target joint, times ``scale``."""
+    masses and inertias of every body moved by a target joint, times ``scale``. Besides the
+    focus joint, tried from each body below it: a light wrist shows most at the elbow."""
 
     name, family, touches_model, per_joint_allowed, focus_allowed = "mass_scale", "mass", True, False, True
-    changes_inertia = True
+    changes_inertia = below_focus = True
 
     def params(self, tr: Trajectory) -> list[Param]:
         return [Param("scale", 1.0, 0.3, 3.0, 0.01, "")]
