@@ -714,8 +714,8 @@ def part_shares(candidate: Candidate, rep: Replayer) -> list[dict[str, Any]]:
     effects = candidate.combo.effects
     if len(effects) < 2:
         return []
-    _, without = gaps_without_each_part(candidate, rep)
-    rise = np.maximum(np.array(without) ** 2 - candidate.heldout_gap**2, 0.0)
+    gap, without = gaps_without_each_part(candidate, rep)
+    rise = np.maximum(np.array(without) ** 2 - gap**2, 0.0)
     shares = rise / rise.sum() if rise.sum() > 0 else np.full(len(rise), 1.0 / len(rise))
     return [{"effect": e.label, "share": float(sh), "gap_without": float(g)}
             for e, sh, g in zip(effects, shares, without)]

@@ -56,6 +56,7 @@ from crisp_gym.sim2real.effects.loads import (
     actuator_torque,
     add_point_mass,
     external_torque,
+    joints_below,
     lever_scale,
     release_inertial_frame,
 )
@@ -90,23 +91,6 @@ def check_families(families: tuple[str, ...]) -> None:
     unknown = [f for f in families if f not in FAMILIES]
     if unknown:
         raise ValueError(f"unknown effect families {unknown}; the library's are {', '.join(FAMILIES)}")
-
-
-def joints_below(tr: Trajectory, joint: str) -> list[str]:
-    """The logged joints of the bodies below ``joint``'s body, one per body (the first logged
-    of a body's joints: the others move the same bodies), in the log's order."""
-    model, names = tr.model, tr.log.joint_names
-    top = int(model.jnt_bodyid[model.joint(joint).id])
-    out, bodies = [], set()
-    for name in names:
-        body = int(model.jnt_bodyid[model.joint(name).id])
-        above = int(model.body_parentid[body])
-        while above > 0 and above != top:
-            above = int(model.body_parentid[above])
-        if body != top and above == top and body not in bodies:
-            bodies.add(body)
-            out.append(name)
-    return out
 
 
 def library(tr: Trajectory, focus: str | None = None, families: tuple[str, ...] | None = None) -> list[Effect]:

@@ -32,6 +32,21 @@ class MassScale(Effect):
         model.body_inertia[bodies] *= x[0]
 
 
+def joints_below(tr: Trajectory, joint: str) -> list[str]:
+    """The logged joints of the bodies below ``joint``'s body, one per body (the first logged
+    of a body's joints: the others move the same bodies), in the log's order."""
+    model = tr.model
+    top = int(model.jnt_bodyid[model.joint(joint).id])
+    below = set(_moved_bodies(model, [model.joint(joint).id]).tolist()) - {top}
+    out = []
+    for name in tr.log.joint_names:
+        body = int(model.jnt_bodyid[model.joint(name).id])
+        if body in below:
+            below.discard(body)
+            out.append(name)
+    return out
+
+
 def _moved_bodies(model: mujoco.MjModel, jids: list[int]) -> np.ndarray:
     """Bodies at or below the bodies of the given joints."""
     roots = {int(model.jnt_bodyid[j]) for j in jids}
