@@ -12,6 +12,7 @@ frames, and splits the wall-clock time of the measured iterations into:
     python benchmarks/train_fps.py                      # CPU profile, MLP and transformer actors
     python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
     python benchmarks/train_fps.py --actors mlp --no-baseline --point-encoders pointnet flat
+    python benchmarks/train_fps.py --actors mlp --no-baseline --precisions float32 bfloat16
 
 The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
 The baseline, measured first in the same run, is the CPU profile as it was before its
@@ -50,6 +51,8 @@ class Args:
         scene: which variants to measure (``blind``, ``aware``).
         point_encoders: the scene-aware variants' point encoders (``pointnet``, ``flat``; default:
             the profile's).
+        precisions: the networks' precisions to measure every variant in (``float32``,
+            ``bfloat16``; default: the profile's).
         frames: frames measured per variant (rounded up to whole iterations).
         warmup: iterations run before measuring.
         baseline: also measure the baseline (see the module docstring) and give ratios to it.
@@ -66,6 +69,7 @@ class Args:
     actors: tuple[str, ...] = ("mlp", "transformer")
     scene: tuple[str, ...] = ("blind", "aware")
     point_encoders: tuple[str, ...] = ()
+    precisions: tuple[str, ...] = ()
     frames: int = 16384
     warmup: int = 2
     baseline: bool = True
@@ -140,25 +144,27 @@ def main(argv: list[str] | None = None) -> int:
     print(f"torch threads by default: {default_threads}, device: {args.device}, profile: {args.profile}")
     variants = [("baseline", "blind", replace(base, **BASELINE))] if args.baseline else []
     encoders = {"blind": (base.model.point_encoder,), "aware": args.point_encoders or (base.model.point_encoder,)}
-    variants += [(actor, scene, replace(base, scene_aware=scene == "aware",
+    variants += [(actor, scene, replace(base, scene_aware=scene == "aware", precision=precision,
                                         model=replace(base.model, actor=actor, point_encoder=encoder), **overrides))
-                 for actor in args.actors for scene in args.scene for encoder in encoders[scene]]
+                 for actor in args.actors for scene in args.scene for encoder in encoders[scene]
+                 for precision in args.precisions or (base.precision,)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         clip = str(resolve_clip(args.clip))
         for name, scene, variant in variants:
-            cfg = replace(variant, clip=clip, output=Path(tmp) / f"{name}-{scene}-{variant.model.point_encoder}",
+            cfg = replace(variant, clip=clip,
+                          output=Path(tmp) / f"{name}-{scene}-{variant.model.point_encoder}-{variant.precision}",
                           device=args.device, seed=args.seed, progress=False, checkpoint_every=10**9)
             iterations = -(-args.frames // cfg.frames_per_iteration)
             cfg = replace(cfg, frames=(args.warmup + iterations) * cfg.frames_per_iteration)
             stats = measure(cfg, args.warmup)
             rows.append((name, scene, cfg, stats))
-            print(f"  {scene:5s} {name:11s} {stats['fps']:8.0f} frames/s", flush=True)
+            print(f"  {scene:5s} {name:11s} {cfg.precision:8s} {stats['fps']:8.0f} frames/s", flush=True)
     reference = rows[0][3]["fps"] if args.baseline else None
     print()
-    print("| variant | actor | critic | envs × steps | minibatch × epochs | torch threads | FPS | × baseline | physics "
-          "| observation | inference | update |")
-    print("|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| variant | actor | critic | envs × steps | minibatch × epochs | torch threads | precision | FPS | × baseline "
+          "| physics | observation | inference | update |")
+    print("|---|---|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for name, scene, cfg, s in rows:
         actor = cfg.model.actor + (str(cfg.model.mlp_actor_hidden) if cfg.model.actor == "mlp" else "")
         ratio = f"{s['fps'] / reference:.2f}" if reference else "–"
@@ -167,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             label += f" ({cfg.model.point_encoder})"
         print(f"| {label} | {actor} | {cfg.model.critic_hidden} | "
               f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | "
-              f"{cfg.torch_threads or default_threads} | {s['fps']:.0f} | {ratio} | "
+              f"{cfg.torch_threads or default_threads} | {cfg.precision} | {s['fps']:.0f} | {ratio} | "
               f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
     return 0
 

@@ -118,11 +118,39 @@ def test_kept_start_observations_are_what_the_reset_state_gives(sway_clip, autor
         ids = np.flatnonzero(reset)
         starts += len(ids)
         if len(ids):
+            env._forward(ids)  # the reset state's derived fields (a reset leaves them to the next step)
             expected = env.task.observe(env._state(ids), env._clip[ids], env._frame[ids])
             for key in obs:
                 np.testing.assert_array_equal(obs[key][ids], expected[key])
     kept = int(env._start_obs.known.sum())
     assert starts > 40 and kept < starts  # resets happened, and some started where one had before
+
+
+def test_reset_simulations_step_alike_without_a_forward_pass(sway_clip):
+    """A reset leaves the derived fields to the next step, which computes its own forward pass:
+    the trajectories must be those of an env that brings every reset up to date at once."""
+    plain = CrispTrackVectorEnv(8, clip=str(sway_clip), num_threads=1)
+    eager = CrispTrackVectorEnv(8, clip=str(sway_clip), num_threads=1)
+    reset_sims = eager._reset_sims
+
+    def reset_and_forward(ids, clips, frames):
+        reset_sims(ids, clips, frames)
+        eager._forward(ids)
+
+    eager._reset_sims = reset_and_forward
+    rng = np.random.default_rng(5)
+    plain.reset(seed=1)
+    eager.reset(seed=1)
+    resets = 0
+    for _ in range(40):  # large actions: many falls, so many resets
+        action = rng.uniform(-1, 1, (8, 69))
+        a, b = plain.step(action), eager.step(action)
+        for key in a[0]:
+            np.testing.assert_array_equal(a[0][key], b[0][key])
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2])
+        resets += int(a[2].sum() + a[3].sum())
+    assert resets > 10
 
 
 def test_make_vec_and_same_step_autoreset(sway_clip):

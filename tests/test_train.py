@@ -8,6 +8,7 @@ two CPU cores.
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -109,6 +110,36 @@ def test_flat_points_is_a_linear_map_of_the_points_in_their_order() -> None:
         encoder(torch.zeros(1, 3, 3))
     with pytest.raises(ValueError, match="point_encoder"):
         ModelConfig(point_encoder="voxels")
+
+
+def test_output_layers_compute_in_float32_under_bfloat16_autocast() -> None:
+    from torch import nn
+
+    from crisp_gym.policy.networks import Float32Linear
+
+    torch.manual_seed(0)
+    exact, plain = Float32Linear(256, 69), nn.Linear(256, 69)
+    plain.load_state_dict(exact.state_dict())  # the same keys: files load either way
+    hidden = torch.randn(32, 256).bfloat16()  # what a bfloat16 hidden layer hands over
+    expected = torch.nn.functional.linear(hidden.float(), exact.weight, exact.bias)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, rounded = exact(hidden), plain(hidden)
+    assert out.dtype == torch.float32 and rounded.dtype == torch.bfloat16
+    torch.testing.assert_close(out, expected, rtol=0, atol=0)
+    assert (rounded.float() - expected).abs().max() > 1e-4  # what it avoids: bfloat16's rounding
+
+    # the whole actor and critic: float32 outputs within bfloat16's rounding of the float32 pass
+    model = replace(SMALL_MLP, init_action_std=0.05)  # action means of O(0.1), not ~0
+    normalizer = ObsNormalizer(K)
+    actor, critic = build_actor(model, K, 0, normalizer), Critic(K, 0, normalizer, model.critic_hidden)
+    obs = _obs((256,), False)
+    with torch.no_grad():
+        loc, value = actor(*obs), critic(*obs)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            loc_bf16, value_bf16 = actor(*obs), critic(*obs)
+    assert loc_bf16.dtype == value_bf16.dtype == torch.float32
+    assert (loc_bf16 - loc).abs().max() < 0.05 * loc.abs().mean()
+    assert (value_bf16 - value).abs().max() < 0.05 * value.abs().mean()
 
 
 def test_files_from_before_the_point_encoder_option_load() -> None:
@@ -417,6 +448,19 @@ def test_scene_aware_transformer_trains(clip_dir: Path, tmp_path: Path) -> None:
     result = train(cfg)
     assert result.iteration == 4
     assert all(np.isfinite(row["loss_critic"]) for row in result.history if "loss_critic" in row)
+
+
+def test_training_in_bfloat16(clip_dir: Path, tmp_path: Path) -> None:
+    from crisp_gym.train.config import config_from_dict
+    from crisp_gym.train.ppo import train
+
+    with pytest.raises(ValueError, match="precision"):
+        _tiny_config(clip_dir, tmp_path, precision="float16")
+    cfg = _tiny_config(clip_dir, tmp_path, precision="bfloat16", num_envs=8, frames=2048, minibatch_size=128, epochs=1)
+    result = train(cfg)
+    updates = [row for row in result.history if "loss_critic" in row]
+    assert len(updates) == 7 and all(np.isfinite(row["loss_critic"]) for row in updates)
+    assert config_from_dict(json.loads((tmp_path / "config.json").read_text())).precision == "bfloat16"
 
 
 def test_cli(clip_dir: Path, tmp_path: Path) -> None:

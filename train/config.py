@@ -13,10 +13,14 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Annotated, Any
 
+import torch
 import tyro
 
 from crisp_gym.policy.files import model_config
 from crisp_gym.policy.networks import ModelConfig
+
+PRECISIONS = ("float32", "bfloat16")
+"""What ``TrainConfig.precision`` may name."""
 
 LOGGERS = ("csv", "tensorboard", "wandb", "mlflow")
 """The experiment loggers of ``torchrl.record.loggers`` that ``TrainConfig.loggers`` may name."""
@@ -65,6 +69,12 @@ class TrainConfig:
         device: "auto" (CUDA when available), "cpu", "cuda"...
         num_threads: MuJoCo threads stepping the batch (0: all CPUs).
         torch_threads: torch intra-op threads (0: torch's default).
+        precision: "float32", or "bfloat16": the networks' hidden layers run in bfloat16
+            (torch.autocast) while collecting and updating; weights, optimiser, observation
+            statistics, output layers and the loss stay float32, and policy files are float32
+            (evaluation runs in float32). On a CPU with native bfloat16 matrix units (AVX512-BF16,
+            AMX) a CPU-profile update takes about half as long; elsewhere it is slower
+            (native_bfloat16 tells). Ray workers collect in float32.
         checkpoint_every: iterations between checkpoints (one is also written at the end).
         eval_every: iterations between deterministic evaluations (the policy's mean action, per
             clip: success from eval_episodes fixed RSI starts and frames tracked from frame
@@ -133,6 +143,7 @@ class TrainConfig:
     device: str = "auto"
     num_threads: int = 0
     torch_threads: int = 0
+    precision: str = "float32"
     checkpoint_every: int = 20
     eval_every: int = 0
     eval_episodes: int = 32
@@ -161,6 +172,8 @@ class TrainConfig:
             raise ValueError(f"frames must be non-negative, got {self.frames}")
         if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.critic_loss not in ("l2", "smooth_l1"):
             raise ValueError(f"critic_loss must be 'l2' or 'smooth_l1', got {self.critic_loss!r}")
         if self.init_stats_samples is not None and self.init_stats_samples < 1:
@@ -184,6 +197,13 @@ class TrainConfig:
         return self.num_envs * self.steps_per_env
 
 
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices natively (AVX512-BF16 or AMX); elsewhere
+    torch emulates them, slower than float32."""
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own probes
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
 def paper_profile(**overrides: Any) -> TrainConfig:
     """The paper's setup (transformer actor, 2048 envs, batch 8192, lr 2e-5): for a GPU machine."""
     return replace(TrainConfig(), **overrides)
@@ -195,8 +215,10 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     Small MLPs (actor and critic 256-256; scene-aware, the points encoded flat: ``FlatPoints``
     instead of a PointNet), 64 envs × 16 steps per iteration, 2 epochs of 512-sample minibatches,
     actor lr 3e-5 and critic lr 5e-4, rewards scaled by 0.05 with the energy penalty capped at 2
-    per step, adaptive start sampling, a 20 M frame budget and an evaluation every 500 iterations. ``docs/training.md`` ("The CPU profile") gives the
-    measurements behind each choice.
+    per step, adaptive start sampling, a 20 M frame budget, an evaluation every 500 iterations,
+    and the hidden layers in bfloat16 where the CPU multiplies it natively (:func:`native_bfloat16`;
+    float32 elsewhere; ``config.json`` records which). ``docs/training.md`` ("The CPU profile")
+    gives the measurements behind each choice.
 
     Residual actions (the env's default) are kept: an untrained policy already tracks the
     reference pose with its PD targets, which matters most when few frames are affordable.
@@ -204,6 +226,7 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     base = TrainConfig(num_envs=64, steps_per_env=16, minibatch_size=512, epochs=2, actor_lr=3e-5,
                        critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
                        start_sampling="adaptive", eval_every=500, eval_episodes=32,
+                       precision="bfloat16" if native_bfloat16() else "float32",
                        model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(256, 256),
                                          point_encoder="flat", pointnet_hidden=(32, 64)))
     return replace(base, **overrides)

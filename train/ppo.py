@@ -11,7 +11,10 @@ Pieces, all from TorchRL except the env adapter:
 * loss: ``torchrl.objectives.ClipPPOLoss`` (no entropy bonus: σ is fixed);
 * optimiser: one Adam with two parameter groups (actor lr 2e-5 as in the paper; critic lr
   1e-4, our choice: the paper gives a single rate, and the critic's regression targets move
-  much faster than the policy should).
+  much faster than the policy should);
+* precision: with ``precision="bfloat16"`` the forward passes of collection, value estimation
+  and the loss run under ``torch.autocast`` (:func:`precision_context`); everything else stays
+  float32.
 
 Each iteration: collect → GAE → ``epochs`` passes of shuffled minibatches → update the
 observation normaliser from the batch (after the update, so the minibatches see the
@@ -37,6 +40,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -54,7 +58,7 @@ from crisp_gym.policy.files import BEST_NAME, CHECKPOINT_NAME, load_checkpoint, 
 from crisp_gym.policy.networks import Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
 from crisp_gym.train.checkpoints import (check_resumable, evaluation_meets, evaluation_score, evaluation_score_of,
                                          save_checkpoint)
-from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict
+from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict, native_bfloat16
 from crisp_gym.train.rollouts import LibraryEvaluation, single_cpu_thread, torch_policy
 from crisp_gym.train.run_log import RunLogger, clip_fields, confirmation_row, evaluation_row
 
@@ -142,6 +146,11 @@ def estimate_values(data: TensorDictBase, value: Any) -> None:
     data.set(("next", "state_value"), following)
 
 
+def precision_context(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """Where the networks run: bfloat16 autocast for ``precision="bfloat16"``, else nothing."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16")
+
+
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -223,7 +232,8 @@ def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.op
                cfg: TrainConfig, generator: torch.Generator, train_actor: bool = True) -> dict[str, float]:
     """``cfg.epochs`` passes of shuffled minibatches over a flat batch with advantages; mean losses.
 
-    ``train_actor=False`` steps only the critic (the warm-up of a warm-started run).
+    ``train_actor=False`` steps only the critic (the warm-up of a warm-started run). The forward
+    passes run in ``cfg.precision``; the backward pass follows them (autocast's rule).
     """
     n = data.numel()
     sums: dict[str, float] = {}
@@ -234,7 +244,8 @@ def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.op
             batch = data[order[start:start + cfg.minibatch_size]]
             if cfg.normalize_advantage:
                 batch.set("advantage", normalize_advantages(batch.get("advantage")))
-            losses = loss_module(batch)
+            with precision_context(cfg.precision, data.device):
+                losses = loss_module(batch)
             loss = losses["loss_objective"] + losses["loss_critic"] if train_actor else losses["loss_critic"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -340,6 +351,9 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     write_text(out / "config.json", json.dumps(config_to_dict(cfg), indent=2) + "\n")
 
     device = resolve_device(cfg.device)
+    if cfg.precision == "bfloat16" and device.type == "cpu" and not native_bfloat16():
+        warnings.warn("precision='bfloat16' on a CPU without native bfloat16 (AVX512-BF16 or AMX): torch "
+                      "emulates it, and training runs slower than in float32", stacklevel=2)
     if cfg.torch_threads > 0:
         torch.set_num_threads(cfg.torch_threads)
     iteration = saved["iteration"] if saved else 0
@@ -394,7 +408,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
-            with single_cpu_thread(device):  # with two threads a forward pass took 5x as long on a busy machine
+            # with two threads a forward pass took 5x as long on a busy machine
+            with single_cpu_thread(device), precision_context(cfg.precision, device):
                 data = next(batches)  # (num_envs, steps_per_env); on Ray (workers, num_envs, steps_per_env)
             if cfg.ray_workers:
                 data = data.reshape(-1, data.shape[-1])
@@ -409,7 +424,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                     # start brings its statistics.
                     losses = {}
                 else:
-                    with torch.no_grad():
+                    with torch.no_grad(), precision_context(cfg.precision, device):
                         estimate_values(data, agent.value)
                         gae(data)
                     if ramp:

@@ -143,10 +143,16 @@ class CrispTrackVectorEnv(VectorEnv):
         self._fields["qpos"][ids] = qpos
         self._fields["qvel"][ids] = qvel
         self._fields["ctrl"][ids] = ctrl
-        self.batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        # No forward pass here: a step computes its own from qpos and qvel, so only the simulations
+        # whose derived fields are read before their next step need one (see _forward).
         self._clip[ids] = clips
         self._frame[ids] = frames
         self._start_frame[ids] = frames
+
+    def _forward(self, ids: np.ndarray) -> None:
+        """Bring the derived fields (body poses, velocities, forces) of simulations just reset up
+        to their new state, for reading them before their next step."""
+        self.batch.forward(np.unique(ids), stage=mujoco.mjtStage.mjSTAGE_VEL)  # the batch takes sorted ids
 
     def _start_observation(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """The observations of simulations ``ids``, just reset (see :class:`StartObservations`)."""
@@ -155,6 +161,7 @@ class CrispTrackVectorEnv(VectorEnv):
         if new.any():
             fresh = ids[new]
             rows_new, first = np.unique(rows[new], return_index=True)  # two starts at one frame: once
+            self._forward(fresh[first])
             obs = self.task.observe(self._state(fresh[first]), self._clip[fresh[first]], self._frame[fresh[first]])
             self._start_obs.keep(rows_new, obs)
         return self._start_obs[rows]
@@ -171,6 +178,7 @@ class CrispTrackVectorEnv(VectorEnv):
             frames = np.broadcast_to(np.asarray(options["start_frame"], dtype=int), (self.num_envs,)).copy()
         self.task.check_starts(clips, frames)
         self._reset_sims(self._all, clips, frames)
+        self._forward(self._all)
         self._needs_reset[:] = False
         obs = self._start_observation(self._all)
         error = self.task.tracking_error(self._state(), self._clip, self._frame)
@@ -252,6 +260,7 @@ class CrispTrackVectorEnv(VectorEnv):
                 info[f"reward_{name}"][ids] = 0.0
             info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]
             info["start_frame"][ids] = self._start_frame[ids]
+            self._forward(ids)
             info["max_body_error"][ids] = self.task.tracking_error(self._state(ids), self._clip[ids],
                                                                    self._frame[ids])
         self._needs_reset = finished
