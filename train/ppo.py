@@ -238,13 +238,14 @@ def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.op
     n = data.numel()
     sums: dict[str, float] = {}
     steps = 0
+    device = next(agent.actor.parameters()).device  # (a batch gathered from Ray workers has none)
     for _ in range(cfg.epochs):
         order = torch.randperm(n, generator=generator).to(data.device)
         for start in range(0, n, cfg.minibatch_size):
             batch = data[order[start:start + cfg.minibatch_size]]
             if cfg.normalize_advantage:
                 batch.set("advantage", normalize_advantages(batch.get("advantage")))
-            with precision_context(cfg.precision, data.device):
+            with precision_context(cfg.precision, device):
                 losses = loss_module(batch)
             loss = losses["loss_objective"] + losses["loss_critic"] if train_actor else losses["loss_critic"]
             optimizer.zero_grad(set_to_none=True)
