@@ -463,6 +463,19 @@ def test_training_in_bfloat16(clip_dir: Path, tmp_path: Path) -> None:
     assert config_from_dict(json.loads((tmp_path / "config.json").read_text())).precision == "bfloat16"
 
 
+def test_bfloat16_only_where_the_cpu_multiplies_it_natively(clip_dir: Path, tmp_path: Path, monkeypatch) -> None:
+    import crisp_gym.train.config as config
+    import crisp_gym.train.ppo as ppo
+
+    for native, expected in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(config, "native_bfloat16", lambda native=native: native)
+        assert config.cpu_profile().precision == expected
+    # asked for anyway on such a CPU, the run says that it will be slow
+    monkeypatch.setattr(ppo, "native_bfloat16", lambda: False)
+    with pytest.warns(UserWarning, match="emulates"):
+        ppo.train(_tiny_config(clip_dir, tmp_path, precision="bfloat16", frames=0))
+
+
 def test_cli(clip_dir: Path, tmp_path: Path) -> None:
     from crisp_gym.train.cli import main
 
