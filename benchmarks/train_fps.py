@@ -13,8 +13,10 @@ frames, and splits the wall-clock time of the measured iterations into:
     python benchmarks/train_fps.py --profile paper --num-envs 2048 --actors transformer
     python benchmarks/train_fps.py --actors mlp --no-baseline --point-encoders pointnet flat
     python benchmarks/train_fps.py --actors mlp --no-baseline --precisions float32 bfloat16
+    python benchmarks/train_fps.py --actors mlp --no-baseline --collector-workers 0 2
 
-The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
+With collector workers the env runs in other processes, so such a variant gets its FPS and
+update share only. The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
 The baseline, measured first in the same run, is the CPU profile as it was before its
 networks and batch shapes were resized (scene-blind MLP actor (512, 512), critic (1024, 512),
 64 envs × 128 steps, one 8,192-sample minibatch, 2 epochs); every row also gets its ratio to it.
@@ -22,6 +24,7 @@ networks and batch shapes were resized (scene-blind MLP actor (512, 512), critic
 
 from __future__ import annotations
 
+import math
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -36,7 +39,7 @@ from crisp_gym.train.config import TrainConfig, cpu_profile, paper_profile
 from crisp_gym.train.ppo import make_env, train
 
 BASELINE = {"num_envs": 64, "steps_per_env": 128, "minibatch_size": 8192, "epochs": 2, "scene_aware": False,
-            "torch_threads": 0,
+            "torch_threads": 0, "collector_workers": 0,
             "model": ModelConfig(actor="mlp", mlp_actor_hidden=(512, 512), critic_hidden=(1024, 512))}
 
 
@@ -53,6 +56,8 @@ class Args:
             the profile's).
         precisions: the networks' precisions to measure every variant in (``float32``,
             ``bfloat16``; default: the profile's).
+        collector_workers: the collector worker processes to measure every variant with (0:
+            collection in the trainer's process; default: the profile's).
         frames: frames measured per variant (rounded up to whole iterations).
         warmup: iterations run before measuring.
         baseline: also measure the baseline (see the module docstring) and give ratios to it.
@@ -70,6 +75,7 @@ class Args:
     scene: tuple[str, ...] = ("blind", "aware")
     point_encoders: tuple[str, ...] = ()
     precisions: tuple[str, ...] = ()
+    collector_workers: tuple[int, ...] = ()
     frames: int = 16384
     warmup: int = 2
     baseline: bool = True
@@ -117,22 +123,25 @@ def measure(cfg: TrainConfig, warmup: int) -> dict[str, float]:
 
     threads = torch.get_num_threads()
     try:
-        result = train(cfg, env_fn=env_fn)
+        # worker processes build their envs themselves: nothing of theirs can be timed here
+        result = train(cfg, env_fn=None if cfg.worker_processes else env_fn)
     finally:
         torch.set_num_threads(threads)  # train() sets the process-wide count from the config
     rows = result.history[warmup:]
     if not rows:
         raise ValueError("no measured iterations: raise --iterations")
     collect = sum(r["collect_s"] for r in rows)
-    env_s = sum(r["env_s"] for r in rows)
     update = sum(r["update_s"] for r in rows)
-    # physics is only known in total: apportion it to the measured iterations by env time
-    total_env = sum(r["env_s"] for r in result.history)
-    physics = batches[0].seconds * env_s / total_env
     total = collect + update
     frames = sum(cfg.frames_per_iteration for _ in rows)
-    return {"fps": frames / total, "physics": physics / total, "observation": (env_s - physics) / total,
-            "inference": (collect - env_s) / total, "update": update / total, "iteration_s": total / len(rows)}
+    shares = {"physics": math.nan, "observation": math.nan, "inference": math.nan}
+    if not cfg.worker_processes:
+        env_s = sum(r["env_s"] for r in rows)
+        # physics is only known in total: apportion it to the measured iterations by env time
+        physics = batches[0].seconds * env_s / sum(r["env_s"] for r in result.history)
+        shares = {"physics": physics / total, "observation": (env_s - physics) / total,
+                  "inference": (collect - env_s) / total}
+    return {"fps": frames / total, **shares, "update": update / total, "iteration_s": total / len(rows)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -145,26 +154,31 @@ def main(argv: list[str] | None = None) -> int:
     variants = [("baseline", "blind", replace(base, **BASELINE))] if args.baseline else []
     encoders = {"blind": (base.model.point_encoder,), "aware": args.point_encoders or (base.model.point_encoder,)}
     variants += [(actor, scene, replace(base, scene_aware=scene == "aware", precision=precision,
+                                        collector_workers=workers,
                                         model=replace(base.model, actor=actor, point_encoder=encoder), **overrides))
                  for actor in args.actors for scene in args.scene for encoder in encoders[scene]
-                 for precision in args.precisions or (base.precision,)]
+                 for precision in args.precisions or (base.precision,)
+                 for workers in args.collector_workers or (base.collector_workers,)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         clip = str(resolve_clip(args.clip))
         for name, scene, variant in variants:
             cfg = replace(variant, clip=clip,
-                          output=Path(tmp) / f"{name}-{scene}-{variant.model.point_encoder}-{variant.precision}",
+                          output=Path(tmp) / (f"{name}-{scene}-{variant.model.point_encoder}-{variant.precision}"
+                                              f"-{variant.collector_workers}"),
                           device=args.device, seed=args.seed, progress=False, checkpoint_every=10**9)
             iterations = -(-args.frames // cfg.frames_per_iteration)
             cfg = replace(cfg, frames=(args.warmup + iterations) * cfg.frames_per_iteration)
             stats = measure(cfg, args.warmup)
             rows.append((name, scene, cfg, stats))
-            print(f"  {scene:5s} {name:11s} {cfg.precision:8s} {stats['fps']:8.0f} frames/s", flush=True)
+            print(f"  {scene:5s} {name:11s} {cfg.precision:8s} workers {cfg.worker_processes} "
+                  f"{stats['fps']:8.0f} frames/s", flush=True)
     reference = rows[0][3]["fps"] if args.baseline else None
     print()
-    print("| variant | actor | critic | envs × steps | minibatch × epochs | torch threads | precision | FPS | × baseline "
+    print("| variant | actor | critic | envs × steps | minibatch × epochs | torch threads | precision | workers | FPS "
+          "| × baseline "
           "| physics | observation | inference | update |")
-    print("|---|---|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|")
     for name, scene, cfg, s in rows:
         actor = cfg.model.actor + (str(cfg.model.mlp_actor_hidden) if cfg.model.actor == "mlp" else "")
         ratio = f"{s['fps'] / reference:.2f}" if reference else "–"
@@ -173,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             label += f" ({cfg.model.point_encoder})"
         print(f"| {label} | {actor} | {cfg.model.critic_hidden} | "
               f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | "
-              f"{cfg.torch_threads or default_threads} | {cfg.precision} | {s['fps']:.0f} | {ratio} | "
+              f"{cfg.torch_threads or default_threads} | {cfg.precision} | {cfg.worker_processes} | {s['fps']:.0f} | {ratio} | "
               f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
     return 0
 

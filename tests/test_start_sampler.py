@@ -161,3 +161,21 @@ def test_bad_configuration_is_refused():
         TrackConfig(clip_weights=(0.0, 0.0))
     with pytest.raises(ValueError, match="at least 2 frames"):
         StartSampler([1], TrackConfig())
+
+
+def test_counts_kept_in_given_storage_are_the_counts():
+    """``attach``: the storage's contents become the counts, and later records land in it."""
+    sampler = StartSampler([61, 31], _adaptive(adaptive_bin_seconds=1.0))
+    assert sampler.counts_size == 2 + 1 + 2  # bins of 30 frames over 60 and 30 start frames, then ended
+    storage = np.arange(5, dtype=np.float64)
+    sampler.attach(storage)
+    assert [f.tolist() for f in sampler.failures] == [[0.0, 1.0], [2.0]] and sampler.ended.tolist() == [3.0, 4.0]
+    twin = StartSampler([61, 31], _adaptive(adaptive_bin_seconds=1.0))
+    twin.failures, twin.ended = [np.array([0.0, 1.0]), np.array([2.0])], np.array([3.0, 4.0])
+    for s in (sampler, twin):
+        s.record(np.array([0, 1, 0]), np.array([45, 10, 3]), np.array([True, True, False]))
+    np.testing.assert_array_equal(storage, np.concatenate([*twin.failures, twin.ended]))
+    rng, twin_rng = np.random.default_rng(2), np.random.default_rng(2)
+    assert [a.tolist() for a in sampler.sample(rng, 30)] == [a.tolist() for a in twin.sample(twin_rng, 30)]
+    with pytest.raises(ValueError, match=r"float64 array of shape \(5,\)"):
+        sampler.attach(np.zeros(4))

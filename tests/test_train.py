@@ -316,7 +316,7 @@ def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  #
     # unscaled rewards: the learning rates here suit the critic regressing the env's own returns
     base = dict(clip=str(clip_dir), output=output, num_envs=16, steps_per_env=32, minibatch_size=256, epochs=4,
                 actor_lr=1e-4, critic_lr=1e-3, reward_scale=1.0, model=SMALL_MLP, checkpoint_every=4, progress=False,
-                seed=3, torch_threads=2)
+                seed=3, torch_threads=2, collector_workers=0)  # in this process: tests patch its env and trainer
     return cpu_profile(**{**base, **overrides})
 
 
@@ -885,3 +885,57 @@ def test_collection_on_two_ray_workers_trains_with_their_frames(clip_dir: Path, 
     assert all(int(b["frames"]) - int(a["frames"]) == 2 * 16 * 8 for a, b in zip(rows, rows[1:]))
     assert all(np.isfinite(float(r["loss_critic"])) for r in rows[1:])
     assert load_checkpoint(tmp_path / "run")["frames"] == result.frames
+
+
+def test_shared_start_counts_sum_the_workers_and_share_a_restored_total(tmp_path: Path) -> None:
+    from crisp_gym.envs.config import TrackConfig
+    from crisp_gym.envs.start_sampler import StartSampler
+    from crisp_gym.train.workers import SharedStartCounts, counts_table
+
+    sampler = StartSampler([61, 31], TrackConfig(start_sampling="adaptive", adaptive_bin_seconds=1.0))
+    with SharedStartCounts(sampler, workers=2) as counts:
+        seen = [StartSampler([61, 31], sampler.config) for _ in counts.paths]  # as each worker's env does
+        for worker, path in zip(seen, counts.paths):
+            worker.attach(counts_table(path, worker.counts_size))
+        seen[0].record(np.array([0, 1]), np.array([40, 5]), np.array([True, True]))
+        seen[1].record(np.array([0]), np.array([10]), np.array([True]))
+        counts.gather()
+        for kept, a, b in zip(sampler.failures, *(w.failures for w in seen)):
+            np.testing.assert_array_equal(kept, a + b)
+        np.testing.assert_array_equal(sampler.ended, seen[0].ended + seen[1].ended)
+        sampler.failures[0][:] = [4.0, 6.0]  # a resumed run's counts
+        counts.scatter()
+        assert [w.failures[0].tolist() for w in seen] == [[2.0, 3.0], [2.0, 3.0]]
+        directory = counts.paths[0].parent
+    assert not directory.exists()
+
+
+def test_collection_in_two_worker_processes(clip_dir: Path, tmp_path: Path) -> None:
+    """``collector_workers=2``: TorchRL's MultiSyncCollector, the simulations split between two
+    spawned processes. An iteration has the configured frames, the adaptive start counts reach
+    the log and the checkpoint, the same seed gives the same run, and it resumes."""
+    from crisp_gym.policy.files import load_checkpoint
+    from crisp_gym.train.ppo import train
+
+    cfg = _tiny_config(clip_dir, tmp_path / "a", frames=5 * 4 * 16, num_envs=4, steps_per_env=16, minibatch_size=32,
+                       epochs=1, start_sampling="adaptive", collector_workers=2)
+    runs = [train(cfg), train(replace(cfg, output=tmp_path / "b"))]
+    assert [(r.iteration, r.frames) for r in runs] == [(5, 5 * 4 * 16)] * 2
+    logs = [list(csv.DictReader(open(tmp_path / name / "progress.csv"))) for name in "ab"]
+    for column in ("loss_objective", "loss_critic", "episodes", "mean_return", "start_failures/walk"):
+        assert [r[column] for r in logs[0]] == [r[column] for r in logs[1]], column
+    assert float(logs[0][-1]["start_failures/walk"]) > 0  # the untrained policy fails somewhere
+    saved = load_checkpoint(tmp_path / "a")["start_failures"]
+    assert float(saved[0].sum()) == pytest.approx(float(logs[0][-1]["start_failures/walk"]))
+    resumed = train(replace(cfg, frames=7 * 4 * 16, resume=True))
+    assert (resumed.iteration, resumed.frames) == (7, 7 * 4 * 16)
+    assert all(np.isfinite(float(r["loss_critic"])) for r in list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))[1:])
+
+
+def test_collector_workers_must_split_the_simulations_and_give_way_to_ray() -> None:
+    from crisp_gym.train.config import TrainConfig, cpu_profile
+
+    with pytest.raises(ValueError, match=r"divide num_envs \(5\), got 2"):
+        TrainConfig(num_envs=5, collector_workers=2)
+    assert TrainConfig(num_envs=6, collector_workers=3).worker_processes == 3
+    assert cpu_profile(ray_workers=4).worker_processes == 0  # Ray collects: the profile's local workers do not apply

@@ -74,7 +74,7 @@ class TrainConfig:
             statistics, output layers and the loss stay float32, and policy files are float32
             (evaluation runs in float32). On a CPU with native bfloat16 matrix units (AVX512-BF16,
             AMX) a CPU-profile update takes about half as long; elsewhere it is slower
-            (native_bfloat16 tells). Ray workers collect in float32.
+            (native_bfloat16 tells). Worker processes and Ray workers collect in float32.
         checkpoint_every: iterations between checkpoints (one is also written at the end).
         eval_every: iterations between deterministic evaluations (the policy's mean action, per
             clip: success from eval_episodes fixed RSI starts and frames tracked from frame
@@ -103,6 +103,11 @@ class TrainConfig:
             (0.01–0.02 later), and a 97 %-success policy fell to 44 % within 0.5 M frames.
         resume: continue from output/checkpoint.pt.
         progress: show a progress bar.
+        collector_workers: collect in this many worker processes on this machine, each
+            stepping num_envs / collector_workers of the simulations on one MuJoCo thread and
+            running the policy (in float32) on one torch thread; the iteration is the same as in
+            one process. 0: in this process. On two cores, two workers keep both busy while
+            collecting (see crisp_gym.train.workers). Not used when Ray collects (ray_workers).
         ray_workers: collect on this many Ray workers, each with its own batched env of
             num_envs simulations (an iteration then has ray_workers times the frames);
             0: in this process. Each worker's env keeps its own adaptive start sampler, so
@@ -156,6 +161,7 @@ class TrainConfig:
     resume: bool = False
     progress: bool = True
     loggers: tuple[str, ...] = ()
+    collector_workers: int = 0
     ray_workers: int = 0
     ray_address: str | None = None
 
@@ -184,6 +190,9 @@ class TrainConfig:
             raise ValueError("until_success must be in (0, 1] and needs eval_every > 0")
         if self.ray_workers < 0 or (self.ray_address is not None and not self.ray_workers):
             raise ValueError("ray_workers must be at least 0, and ray_address needs ray_workers > 0")
+        if self.collector_workers < 0 or (self.collector_workers and self.num_envs % self.collector_workers):
+            raise ValueError(f"collector_workers must be at least 0 and divide num_envs ({self.num_envs}), "
+                             f"got {self.collector_workers}")
         unknown = [name for name in self.loggers if name not in LOGGERS]
         if unknown:
             raise ValueError(f"unknown loggers {unknown}; TorchRL's are {', '.join(LOGGERS)}")
@@ -195,6 +204,16 @@ class TrainConfig:
     @property
     def frames_per_iteration(self) -> int:
         return self.num_envs * self.steps_per_env
+
+    @property
+    def worker_processes(self) -> int:
+        """The collector worker processes on this machine: ``collector_workers``, none when Ray collects."""
+        return 0 if self.ray_workers else self.collector_workers
+
+
+def available_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the OS tells, else all)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def native_bfloat16() -> bool:
@@ -216,9 +235,10 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
     instead of a PointNet), 64 envs × 16 steps per iteration, 2 epochs of 512-sample minibatches,
     actor lr 3e-5 and critic lr 5e-4, rewards scaled by 0.05 with the energy penalty capped at 2
     per step, adaptive start sampling, a 20 M frame budget, an evaluation every 500 iterations,
-    and the hidden layers in bfloat16 where the CPU multiplies it natively (:func:`native_bfloat16`;
-    float32 elsewhere; ``config.json`` records which). ``docs/training.md`` ("The CPU profile")
-    gives the measurements behind each choice.
+    the hidden layers in bfloat16 where the CPU multiplies it natively (:func:`native_bfloat16`;
+    float32 elsewhere; ``config.json`` records which), and, with two or more CPUs, collection in
+    two worker processes (``collector_workers``). ``docs/training.md`` ("The CPU profile") gives
+    the measurements behind each choice.
 
     Residual actions (the env's default) are kept: an untrained policy already tracks the
     reference pose with its PD targets, which matters most when few frames are affordable.
@@ -227,6 +247,7 @@ def cpu_profile(**overrides: Any) -> TrainConfig:
                        critic_lr=5e-4, reward_scale=0.05, energy_cap=2.0, frames=20_000_000, checkpoint_every=20,
                        start_sampling="adaptive", eval_every=500, eval_episodes=32,
                        precision="bfloat16" if native_bfloat16() else "float32",
+                       collector_workers=2 if available_cpus() >= 2 else 0,
                        model=ModelConfig(actor="mlp", mlp_actor_hidden=(256, 256), critic_hidden=(256, 256),
                                          point_encoder="flat", pointnet_hidden=(32, 64)))
     return replace(base, **overrides)

@@ -4,7 +4,8 @@ Pieces, all from TorchRL except the env adapter:
 
 * env: :class:`~crisp_gym.train.env.CrispTrackTorchEnv` around the batched ``CrispTrack-v0``;
 * collection: ``torchrl.collectors.Collector`` (``num_envs × steps_per_env`` frames per
-  iteration, trajectories continue across iterations);
+  iteration, trajectories continue across iterations), or its ``MultiSyncCollector`` over
+  ``collector_workers`` processes (:mod:`crisp_gym.train.workers`);
 * advantages: ``torchrl.objectives.value.GAE`` (γ = 0.99, λ = 0.95) on values from
   :func:`estimate_values` (one critic pass per batch instead of GAE's two), normalised per
   minibatch by :func:`normalize_advantages`;
@@ -61,6 +62,7 @@ from crisp_gym.train.checkpoints import (check_resumable, evaluation_meets, eval
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict, native_bfloat16
 from crisp_gym.train.rollouts import LibraryEvaluation, single_cpu_thread, torch_policy
 from crisp_gym.train.run_log import RunLogger, clip_fields, confirmation_row, evaluation_row
+from crisp_gym.train.workers import SharedStartCounts, worker_collector, worker_config
 
 
 @dataclass
@@ -235,6 +237,9 @@ def ppo_update(data: TensorDictBase, loss_module: nn.Module, optimizer: torch.op
     ``train_actor=False`` steps only the critic (the warm-up of a warm-started run). The forward
     passes run in ``cfg.precision``; the backward pass follows them (autocast's rule).
     """
+    keys = loss_module.tensor_keys
+    # only what the loss reads: each minibatch's indexing would otherwise copy the next observations too
+    data = data.select(*agent.value.in_keys, keys.action, keys.sample_log_prob, keys.advantage, keys.value_target)
     n = data.numel()
     sums: dict[str, float] = {}
     steps = 0
@@ -275,10 +280,14 @@ def episode_stats(data: TensorDictBase) -> dict[str, float]:
 
 
 def _collector(cfg: TrainConfig, env: Any, env_fn: Callable[[TrainConfig, int], Any], agent: Agent,
-               device: torch.device, iteration: int) -> Any:
-    """TorchRL's ``Collector`` over ``env`` in this process, or with ``cfg.ray_workers`` its
-    ``RayCollector``: one env per worker (from ``env_fn``), the policy's weights (observation
-    statistics included) sent to every worker after each update."""
+               device: torch.device, iteration: int, counts: SharedStartCounts | None) -> Any:
+    """TorchRL's ``Collector`` over ``env`` in this process; with ``cfg.worker_processes`` its
+    ``MultiSyncCollector`` (:func:`~crisp_gym.train.workers.worker_collector`, the start counts
+    in ``counts``); or with ``cfg.ray_workers`` its ``RayCollector``: one env per worker (from
+    ``env_fn``). Workers get the policy's weights (observation statistics included) after each
+    update."""
+    if cfg.worker_processes:
+        return worker_collector(cfg, env_fn, agent.policy, counts, cfg.seed + 1000 * iteration + 1)
     if not cfg.ray_workers:
         from torchrl.collectors import Collector  # noqa: PLC0415
 
@@ -330,7 +339,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     Args:
         cfg: the run's configuration.
         env_fn: builds the TorchRL env from (config, seed); default :func:`make_env`. Profiling
-            passes an instrumented env here.
+            passes an instrumented env here. With collector worker processes every worker
+            builds its own with it, so it must be picklable (a module-level function).
     """
     from torchrl.objectives import ClipPPOLoss
     from torchrl.objectives.value import GAE
@@ -362,7 +372,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     torch.manual_seed(cfg.seed + iteration)
     generator = torch.Generator().manual_seed(cfg.seed)
 
-    env = (env_fn or make_env)(cfg, cfg.seed + 1000 * iteration)
+    # with worker processes this env is never stepped: it gives the specs and sums the start counts
+    env = (env_fn or make_env)(worker_config(cfg) if cfg.worker_processes else cfg, cfg.seed + 1000 * iteration)
     spec = env.observation_spec
     num_targets = spec["targets"].shape[-2]
     num_points = spec["points"].shape[-2] if cfg.scene_aware else 0
@@ -380,14 +391,18 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     critic_only_until = cfg.critic_warmup if warm is not None and "critic" not in warm else 0
     ramp = cfg.actor_lr_warmup if warm is not None else 0
 
-    collector = _collector(cfg, env, env_fn or make_env, agent, device, iteration)
     clip_names = env.vec_env.task.clip_names
     sampler = env.vec_env.start_sampler
+    counts = SharedStartCounts(sampler, cfg.worker_processes) if cfg.worker_processes else None
     best_score = evaluation_score_of(load_checkpoint(out / BEST_NAME)) if (out / BEST_NAME).is_file() else -math.inf
     if saved is not None and "start_failures" in saved:
-        restored = [f.numpy().copy() for f in saved["start_failures"]]
+        restored = [f.numpy() for f in saved["start_failures"]]
         if [f.shape for f in restored] == [f.shape for f in sampler.failures]:
-            sampler.failures = restored
+            for kept, failures in zip(sampler.failures, restored):
+                kept[:] = failures
+            if counts is not None:
+                counts.scatter()
+    collector = _collector(cfg, env, env_fn or make_env, agent, device, iteration, counts)
     evaluation = confirmation = None
     evaluation_env = dict(scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
                           velocity_feedforward=cfg.velocity_feedforward)
@@ -411,11 +426,13 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
             collect_start, env_before = time.perf_counter(), env.env_time
             # with two threads a forward pass took 5x as long on a busy machine
             with single_cpu_thread(device), precision_context(cfg.precision, device):
-                data = next(batches)  # (num_envs, steps_per_env); on Ray (workers, num_envs, steps_per_env)
-            if cfg.ray_workers:
-                data = data.reshape(-1, data.shape[-1])
+                data = next(batches)  # (num_envs, steps_per_env); from workers (workers, envs each, steps)
+            if cfg.ray_workers or cfg.worker_processes:
+                data = data.reshape(-1, data.shape[-1]).to(device)
+            if counts is not None:
+                counts.gather()
             collect_s = time.perf_counter() - collect_start
-            env_s = env.env_time - env_before
+            env_s = math.nan if cfg.worker_processes else env.env_time - env_before  # (not seen in the workers)
 
             with stop_signals.deferred():  # the update, the counters and the row land together
                 update_start = time.perf_counter()
@@ -502,6 +519,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         bar.close()
         logger.close()
         collector.shutdown()
+        if counts is not None:
+            counts.close()
         for evaluator in (evaluation, confirmation):
             if evaluator is not None:
                 evaluator.close()

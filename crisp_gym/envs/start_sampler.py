@@ -70,6 +70,22 @@ class StartSampler:
         return len(self.num_frames)
 
     @property
+    def counts_size(self) -> int:
+        """How many numbers the counts are: every clip's bins, then each clip's ended episodes."""
+        return sum(len(f) for f in self.failures) + self.num_clips
+
+    def attach(self, storage: np.ndarray) -> None:
+        """Keep the counts in ``storage`` from now on, which then holds them in place: a float64
+        array of :attr:`counts_size` (each clip's ``failures``, then ``ended``), for instance
+        shared memory that another process reads. Its contents become the counts."""
+        if storage.dtype != np.float64 or storage.shape != (self.counts_size,):
+            raise ValueError(f"storage must be a float64 array of shape ({self.counts_size},), "
+                             f"got {storage.dtype} {storage.shape}")
+        ends = np.cumsum([len(f) for f in self.failures])
+        self.failures = np.split(storage[:ends[-1]], ends[:-1])  # views into storage
+        self.ended = storage[ends[-1]:]
+
+    @property
     def learning(self) -> bool:
         """Whether ended episodes change the draws (either adaptive mode)."""
         return self.config.start_sampling == "adaptive" or self.config.clip_sampling == "adaptive"

@@ -1,0 +1,114 @@
+"""Collection in worker processes on this machine (``TrainConfig.collector_workers``).
+
+In one process a collection step runs MuJoCo on every core, then the policy, the env's
+observations and TorchRL's bookkeeping on one while the others wait: on two cores collection
+kept 1.5 of them busy. With ``collector_workers = W``, TorchRL's ``MultiSyncCollector``
+splits the ``num_envs`` simulations between W processes, each stepping its share with one
+MuJoCo thread and running the policy on one torch thread, so every core works all through
+collection; the trainer waits meanwhile and then updates on ``torch_threads`` (the iteration,
+the batch and its layout are those of one process).
+
+Each worker's env draws its starts from its own adaptive sampler (so a run stays reproducible
+from its seed), whose counts live in a memory-mapped file: :class:`SharedStartCounts` lets the
+trainer log them and save and restore them with its checkpoints as it does in one process.
+(TorchRL hands a worker its env function by value, so a shared tensor inside it would arrive
+as a copy; a file's path arrives as itself.)
+"""
+
+from __future__ import annotations
+
+import signal
+import tempfile
+from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from crisp_gym.envs.start_sampler import StartSampler
+from crisp_gym.train.config import TrainConfig
+
+
+def counts_table(path: str | Path, size: int) -> np.ndarray:
+    """The start counts kept in the file at ``path``: a float64 array of ``size`` mapped onto it."""
+    return np.memmap(path, dtype=np.float64, mode="r+", shape=(size,))
+
+
+class SharedStartCounts:
+    """The adaptive start counts of every worker's env, in files mapped into memory, seen through
+    the trainer's sampler. A context manager: leaving it deletes the files.
+
+    Args:
+        sampler: the trainer's own sampler (of an env that is never stepped); after
+            :meth:`gather` its counts are the sum of the workers', the counts one process
+            stepping every simulation would have kept.
+        workers: how many workers.
+    """
+
+    def __init__(self, sampler: StartSampler, workers: int):
+        self.total = np.zeros(sampler.counts_size)
+        sampler.attach(self.total)
+        self._directory = tempfile.TemporaryDirectory(prefix="crisp-start-counts-")
+        self.paths = [Path(self._directory.name) / f"worker{k}.f64" for k in range(workers)]
+        for path in self.paths:
+            np.zeros(sampler.counts_size).tofile(path)
+        self.tables = [counts_table(path, sampler.counts_size) for path in self.paths]
+
+    def gather(self) -> None:
+        """Sum the workers' counts into the trainer's sampler (call while the workers are idle)."""
+        self.total[:] = np.sum(self.tables, axis=0)
+
+    def scatter(self) -> None:
+        """Give every worker an equal share of the trainer's counts (a resumed run's, before collecting)."""
+        for table in self.tables:
+            table[:] = self.total / len(self.tables)
+
+    def close(self) -> None:
+        self.tables = []
+        self._directory.cleanup()
+
+    def __enter__(self) -> SharedStartCounts:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def worker_config(cfg: TrainConfig) -> TrainConfig:
+    """The config of one worker's env: its share of the simulations, stepped in its own process on
+    one MuJoCo thread."""
+    return replace(cfg, num_envs=cfg.num_envs // cfg.worker_processes, num_threads=1, collector_workers=0)
+
+
+def worker_env(env_fn: Callable[[TrainConfig, int], Any], cfg: TrainConfig, seed: int, counts: Path) -> Any:
+    """A worker's TorchRL env (run in the worker): ``env_fn(cfg, seed)``, its sampler's counts kept
+    in the file ``counts``. The worker ignores SIGINT and SIGTERM from here on: a terminal's
+    Ctrl-C reaches every process of its group, and a worker that died of it would leave the
+    trainer waiting for it forever instead of saving its checkpoint and stopping the workers."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    env = env_fn(cfg, seed)
+    sampler = env.vec_env.start_sampler
+    sampler.attach(counts_table(counts, sampler.counts_size))
+    return env
+
+
+def worker_collector(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any], policy: Any,
+                     counts: SharedStartCounts, seed: int) -> Any:
+    """TorchRL's ``MultiSyncCollector`` over ``cfg.worker_processes`` workers, the envs seeded
+    ``seed + k``, each batch stacked as (workers, envs per worker, steps). ``env_fn`` must be
+    picklable (a module-level function): the workers are spawned processes."""
+    from torchrl.collectors import MultiSyncCollector  # noqa: PLC0415
+
+    local = worker_config(cfg)
+    collector = MultiSyncCollector(
+        [partial(worker_env, env_fn, local, seed + k, path) for k, path in enumerate(counts.paths)],
+        policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1, env_device="cpu",
+        policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1,
+        num_threads=torch.get_num_threads())  # (by default it leaves the trainer one thread per spare core)
+    collector.set_seed(seed)  # the workers' torch generators, which sample the actions
+    collector.update_policy_weights_()
+    return collector
