@@ -16,7 +16,8 @@ frames, and splits the wall-clock time of the measured iterations into:
     python benchmarks/train_fps.py --actors mlp --no-baseline --collector-workers 0 2
 
 With collector workers the env runs in other processes, so such a variant gets its FPS and
-update share only. The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any registered name or directory.
+update share only. The clip defaults to the bundled ``flat_walk``; ``--clip`` takes any
+registered name or directory.
 The baseline, measured first in the same run, is the CPU profile as it was before its
 networks and batch shapes were resized (scene-blind MLP actor (512, 512), critic (1024, 512),
 64 envs × 128 steps, one 8,192-sample minibatch, 2 epochs); every row also gets its ratio to it.
@@ -187,8 +188,10 @@ def main(argv: list[str] | None = None) -> int:
             label += f" ({cfg.model.point_encoder})"
         print(f"| {label} | {actor} | {cfg.model.critic_hidden} | "
               f"{cfg.num_envs} × {cfg.steps_per_env} | {cfg.minibatch_size} × {cfg.epochs} | "
-              f"{cfg.torch_threads or default_threads} | {cfg.precision} | {cfg.worker_processes} | {s['fps']:.0f} | {ratio} | "
-              f"{s['physics']:.0%} | {s['observation']:.0%} | {s['inference']:.0%} | {s['update']:.0%} |")
+              f"{cfg.torch_threads or default_threads} | {cfg.precision} | {cfg.worker_processes} | "
+              f"{s['fps']:.0f} | {ratio} | "
+              + " | ".join("–" if math.isnan(s[k]) else f"{s[k]:.0%}"
+                           for k in ("physics", "observation", "inference", "update")) + " |")
     return 0
 
 
