@@ -939,3 +939,33 @@ def test_collector_workers_must_split_the_simulations_and_give_way_to_ray() -> N
         TrainConfig(num_envs=5, collector_workers=2)
     assert TrainConfig(num_envs=6, collector_workers=3).worker_processes == 3
     assert cpu_profile(ray_workers=4).worker_processes == 0  # Ray collects: the profile's local workers do not apply
+
+
+def test_collector_workers_outlive_a_terminals_interrupt(clip_dir: Path) -> None:
+    """A terminal's Ctrl-C sends SIGINT to every process of the group: the workers ignore it (and
+    SIGTERM), and keep collecting until the trainer, which saves its checkpoint first, stops them.
+    A worker that died of it left the trainer waiting for its reply forever."""
+    import os
+    import signal
+    import time
+
+    from crisp_gym.train.ppo import build_agent, make_env
+    from crisp_gym.train.workers import SharedStartCounts, worker_collector, worker_config
+
+    cfg = _tiny_config(clip_dir, Path("unused"), num_envs=4, steps_per_env=4, collector_workers=2)
+    env = make_env(worker_config(cfg), 0)
+    agent = build_agent(cfg.model, env.observation_spec["targets"].shape[-2], 0)
+    with SharedStartCounts(env.vec_env.start_sampler, 2) as counts:
+        collector = worker_collector(cfg, make_env, agent.policy, counts, seed=1)
+        try:
+            batches = iter(collector)
+            assert next(batches).shape == (2, 2, 4)
+            for process in collector.procs:
+                os.kill(process.pid, signal.SIGINT)
+                os.kill(process.pid, signal.SIGTERM)
+            time.sleep(1.0)
+            assert all(process.is_alive() for process in collector.procs)
+            collector.update_policy_weights_()
+            assert next(batches).shape == (2, 2, 4)
+        finally:
+            collector.shutdown()
