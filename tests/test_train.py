@@ -965,7 +965,15 @@ def test_collector_workers_outlive_a_terminals_interrupt(clip_dir: Path) -> None
                 os.kill(process.pid, signal.SIGTERM)
             time.sleep(1.0)
             assert all(process.is_alive() for process in collector.procs)
+            # the workers act with the trainer's current weights and observation statistics (as after an update)
+            with torch.no_grad():
+                agent.actor.actor.action_head.bias += 0.05
+            agent.normalizer.update(*_obs((64,), scene_aware=False, seed=5)[:2])
             collector.update_policy_weights_()
-            assert next(batches).shape == (2, 2, 4)
+            batch = next(batches)
+            assert batch.shape == (2, 2, 4)
+            with torch.no_grad():
+                loc, _ = agent.actor(batch["proprio"], batch["targets"])
+            torch.testing.assert_close(batch["loc"], loc, rtol=1e-5, atol=1e-6)
         finally:
             collector.shutdown()
