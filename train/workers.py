@@ -67,6 +67,7 @@ class SharedStartCounts:
             table[:] = self.total / len(self.tables)
 
     def close(self) -> None:
+        """Delete the files (the trainer's sampler keeps the last gathered counts)."""
         self.tables = []
         self._directory.cleanup()
 
@@ -108,7 +109,7 @@ def worker_collector(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any]
         [partial(worker_env, env_fn, local, seed + k, path) for k, path in enumerate(counts.paths)],
         policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1, env_device="cpu",
         policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1,
-        num_threads=torch.get_num_threads())  # (by default it leaves the trainer one thread per spare core)
+        num_threads=torch.get_num_threads())  # its default: the trainer's threads cut to the CPUs minus the workers
     collector.set_seed(seed)  # the workers' torch generators, which sample the actions
     collector.update_policy_weights_()
     return collector
