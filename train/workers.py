@@ -84,13 +84,17 @@ def worker_config(cfg: TrainConfig) -> TrainConfig:
     return replace(cfg, num_envs=cfg.num_envs // cfg.worker_processes, num_threads=1, collector_workers=0)
 
 
-def worker_env(env_fn: Callable[[TrainConfig, int], Any], cfg: TrainConfig, seed: int, counts: Path) -> Any:
-    """A worker's TorchRL env (run in the worker): ``env_fn(cfg, seed)``, its sampler's counts kept
-    in the file ``counts``. The worker ignores SIGINT and SIGTERM from here on: a terminal's
-    Ctrl-C reaches every process of its group, and a worker that died of it would leave the
-    trainer waiting for it forever instead of saving its checkpoint and stopping the workers."""
+def ignore_stop_signals() -> None:
+    """Run first in every worker: ignore SIGINT and SIGTERM. A terminal's Ctrl-C reaches every
+    process of its group, and a worker that died of it left the trainer waiting for its reply
+    forever, where the trainer should save its checkpoint and then stop the workers itself."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+
+
+def worker_env(env_fn: Callable[[TrainConfig, int], Any], cfg: TrainConfig, seed: int, counts: Path) -> Any:
+    """A worker's TorchRL env (run in the worker): ``env_fn(cfg, seed)``, its sampler's counts kept
+    in the file ``counts``."""
     env = env_fn(cfg, seed)
     sampler = env.vec_env.start_sampler
     sampler.attach(counts_table(counts, sampler.counts_size))
@@ -108,7 +112,7 @@ def worker_collector(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any]
     collector = MultiSyncCollector(
         [partial(worker_env, env_fn, local, seed + k, path) for k, path in enumerate(counts.paths)],
         policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1, env_device="cpu",
-        policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1,
+        policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1, init_fn=ignore_stop_signals,
         num_threads=torch.get_num_threads())  # its default: the trainer's threads cut to the CPUs minus the workers
     collector.set_seed(seed)  # the workers' torch generators, which sample the actions
     collector.update_policy_weights_()
