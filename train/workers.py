@@ -53,9 +53,8 @@ class SharedStartCounts:
         sampler.attach(self.total)
         self._directory = tempfile.TemporaryDirectory(prefix="crisp-start-counts-")
         self.paths = [Path(self._directory.name) / f"worker{k}.f64" for k in range(workers)]
-        for path in self.paths:
-            np.zeros(sampler.counts_size).tofile(path)
-        self.tables = [counts_table(path, sampler.counts_size) for path in self.paths]
+        self.tables = [np.memmap(path, dtype=np.float64, mode="w+", shape=(sampler.counts_size,))  # zeros
+                       for path in self.paths]
 
     def gather(self) -> None:
         """Sum the workers' counts into the trainer's sampler (call while the workers are idle)."""
