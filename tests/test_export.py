@@ -450,13 +450,15 @@ def test_policy_layout_describes_the_env_observation() -> None:
 
 
 def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
+    """The exported policy computes what the checkpoint's actor does, and its JSON says how its
+    actions become PD targets (here with the velocity feedforward it was trained with)."""
     from crisp_gym.policy.networks import ModelConfig
     from crisp_gym.train.checkpoints import load_policy, save_checkpoint
     from crisp_gym.train.config import cpu_profile
     from crisp_gym.train.ppo import build_agent
 
     cfg = cpu_profile(output=tmp_path / "run", model=ModelConfig(actor="mlp", mlp_actor_hidden=(32,), critic_hidden=(32,),
-                                                                  init_action_std=0.1))
+                                                                  init_action_std=0.1), velocity_feedforward=True)
     agent = build_agent(cfg.model, 5, 0)
     agent.normalizer.update(*_observations(64, False))
     cfg.output.mkdir()
@@ -469,6 +471,8 @@ def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
         np.testing.assert_allclose(scripted(*obs).numpy(), load_policy(cfg.output)[0](*obs)[0].numpy(), atol=1e-6)
     layout = json.loads((tmp_path / "out" / "policy" / "policy.json").read_text())
     assert layout["files"] == ["policy.pt"] and layout["observation_normalization"]["clip"] == 5.0
+    assert layout["track_config"]["velocity_feedforward"]
+    assert "+ clip(kd / kp * reference hinge velocities of frame t+1, ±0.3)" in layout["output"]["mapping"]
 
 
 # ------------------------------------------------------------------------------------------------

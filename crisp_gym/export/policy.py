@@ -127,6 +127,9 @@ def policy_layout(track: TrackConfig, scene_aware: bool, num_future_frames: int,
     if track.residual_actions:
         mapping = (f"PD target = reference hinge angles of frame t+1 + {track.action_scale} * clip(action, -1, 1) "
                    "(rad)")
+        if track.velocity_feedforward:
+            mapping += (" + clip(kd / kp * reference hinge velocities of frame t+1, "
+                        f"±{track.max_feedforward_lead}) (rad; kd, kp from 'pd')")
     else:
         mapping = "PD target = (lower + upper) / 2 + (upper - lower) / 2 * clip(action, -1, 1) (rad)"
     return {
@@ -200,6 +203,7 @@ def export_checkpoint(checkpoint: str | Path, directory: str | Path,
     """Export the actor of a ``crisp train`` checkpoint (file or run directory) with :func:`export_inference_policy`."""
     loaded = load_actor(checkpoint)
     policy = DeterministicPolicy(loaded.actor)
-    track = TrackConfig(scene_aware=loaded.scene_aware, num_future_frames=policy.num_future_frames)
+    track = TrackConfig(scene_aware=loaded.scene_aware, num_future_frames=policy.num_future_frames,
+                        velocity_feedforward=loaded.velocity_feedforward)
     clip = loaded.model.obs_clip if loaded.normalize_obs else None
     return export_inference_policy(loaded.actor, directory, track, formats, obs_clip=clip)
