@@ -32,9 +32,10 @@ from crisp_gym.envs.start_sampler import StartSampler
 from crisp_gym.train.config import TrainConfig
 
 
-def counts_table(path: str | Path, size: int) -> np.ndarray:
-    """The start counts kept in the file at ``path``: a float64 array of ``size`` mapped onto it."""
-    return np.memmap(path, dtype=np.float64, mode="r+", shape=(size,))
+def counts_table(path: str | Path, size: int, create: bool = False) -> np.ndarray:
+    """The start counts kept in the file at ``path``: a float64 array of ``size`` mapped onto it;
+    ``create`` makes the file, zero-filled."""
+    return np.memmap(path, dtype=np.float64, mode="w+" if create else "r+", shape=(size,))
 
 
 class SharedStartCounts:
@@ -53,8 +54,7 @@ class SharedStartCounts:
         sampler.attach(self.total)
         self._directory = tempfile.TemporaryDirectory(prefix="crisp-start-counts-")
         self.paths = [Path(self._directory.name) / f"worker{k}.f64" for k in range(workers)]
-        self.tables = [np.memmap(path, dtype=np.float64, mode="w+", shape=(sampler.counts_size,))  # zeros
-                       for path in self.paths]
+        self.tables = [counts_table(path, sampler.counts_size, create=True) for path in self.paths]
 
     def gather(self) -> None:
         """Sum the workers' counts into the trainer's sampler (call while the workers are idle)."""
