@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("crisp_gym.synth.video_cli", "render a synthetic depth video with ground truth"),
     "reconstruct": ("crisp_gym.reconstruct.pipeline", "reconstruct a clip from a depth video and a human motion"),
     "reconstruct-all": ("crisp_gym.reconstruct.batch", "reconstruct every input of a folder as its own clip, in parallel on Ray"),
+    "feasibility": ("crisp_gym.feasibility", "search for actions that track a clip: is its reference feasible?"),
     "export": ("crisp_gym.export", "export a clip or a policy for other stacks (MJCF, URDF, GLB, CSV, ONNX)"),
     "train": ("crisp_gym.train.cli", "train a tracking policy with PPO"),
     "eval": ("crisp_gym.train.evaluate", "evaluate a trained policy on a clip: metrics, plots, video"),

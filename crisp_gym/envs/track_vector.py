@@ -17,6 +17,7 @@ reward 0, neither terminated nor truncated).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import mujoco
@@ -37,6 +38,25 @@ _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com",
 # and the applied forces, all zero after mj_resetData (the env moves no mocap body, and its
 # composed models have no plugins).
 _RESET_FIELDS = ("time", "act", "qacc_warmstart", "qfrc_applied", "xfrc_applied")
+
+
+@dataclass(frozen=True)
+class EnvSnapshot:
+    """Copies of simulations' whole states, from :meth:`CrispTrackVectorEnv.snapshot`.
+
+    Attributes:
+        physics: MuJoCo's integration state per simulation (``qpos``, ``qvel``, ``ctrl``, the
+            solver's warm start, ...), one row each.
+        clip, frame, start_frame: (N,) where each simulation is in its episode.
+    """
+
+    physics: dict[str, np.ndarray]
+    clip: np.ndarray
+    frame: np.ndarray
+    start_frame: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.clip)
 
 
 class StartObservations:
@@ -165,6 +185,31 @@ class CrispTrackVectorEnv(VectorEnv):
             obs = self.task.observe(self._state(fresh[first]), self._clip[fresh[first]], self._frame[fresh[first]])
             self._start_obs.keep(rows_new, obs)
         return self._start_obs[rows]
+
+    def snapshot(self, ids: np.ndarray | None = None) -> EnvSnapshot:
+        """The states of simulations ``ids`` (all by default), for :meth:`restore`."""
+        ids = self._all if ids is None else np.asarray(ids, dtype=int)
+        return EnvSnapshot({name: self._fields[name][ids].copy() for name in ("qpos", "qvel", "ctrl") + _RESET_FIELDS},
+                           self._clip[ids].copy(), self._frame[ids].copy(), self._start_frame[ids].copy())
+
+    def restore(self, snapshot: EnvSnapshot, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Simulation ``i`` continues from row ``rows[i]`` of ``snapshot`` (default: row ``i``),
+        exactly as the simulation it was taken from would have; returns the observations.
+
+        One state may go to several simulations (a search branching from it). The start sampler's
+        counts are not touched: episodes restored this way are not the sampler's draws.
+        """
+        rows = np.arange(self.num_envs) if rows is None else np.asarray(rows, dtype=int)
+        if rows.shape != (self.num_envs,) or rows.min() < 0 or rows.max() >= len(snapshot):
+            raise ValueError(f"rows must give one of the snapshot's {len(snapshot)} states to each of the "
+                             f"{self.num_envs} simulations, got shape {rows.shape}")
+        for name, value in snapshot.physics.items():
+            self._fields[name][:] = value[rows]
+        self._clip[:], self._frame[:], self._start_frame[:] = (snapshot.clip[rows], snapshot.frame[rows],
+                                                               snapshot.start_frame[rows])
+        self._needs_reset[:] = False
+        self._forward(self._all)
+        return self.task.observe(self._state(), self._clip, self._frame)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         super().reset(seed=seed)
