@@ -172,3 +172,12 @@ def write_text(path: str | Path, text: str) -> Path:
         tmp.write_text(text)
     return Path(path)
 
+
+def save_figure(fig, path: str | Path) -> None:
+    """Lay out, write atomically (100 dpi) and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)

@@ -89,6 +89,8 @@ class SearchResult:
         max_body_error: (T,) the largest body distance from the reference after each action (m).
         seconds: wall time of the search.
         rounds: search rounds run, retries included.
+        config: the search's settings.
+        env_options: the ``CrispTrack-v0`` keywords it searched under (the actions replay with them).
     """
 
     clip: str
@@ -101,6 +103,7 @@ class SearchResult:
     seconds: float
     rounds: int
     config: SearchConfig = field(default_factory=SearchConfig)
+    env_options: dict[str, bool | float | int | str] = field(default_factory=dict)
 
     def save(self, path: str | Path) -> Path:
         """Write the result as ``.npz`` (arrays plus the scalars and the search config)."""
@@ -108,7 +111,8 @@ class SearchResult:
         np.savez_compressed(path, clip=self.clip, start_frame=self.start_frame, reached=self.reached,
                             whole=self.whole, actions=self.actions, qpos=self.qpos,
                             max_body_error=self.max_body_error, seconds=self.seconds, rounds=self.rounds,
-                            **{f"config_{k}": v for k, v in vars(self.config).items()})
+                            **{f"config_{k}": v for k, v in vars(self.config).items()},
+                            **{f"env_{k}": v for k, v in self.env_options.items()})
         return path
 
 
@@ -140,7 +144,7 @@ def search_env(clip: ClipSource, num_envs: int, num_threads: int = 0, **env_opti
 
 
 def search_clip(clip: ClipSource, start_frame: int = 0, config: SearchConfig = SearchConfig(),
-                proposal: Proposal | None = None, on_round: Callable[[int], None] | None = None,
+                proposal: Proposal | None = None, on_round: Callable[[int, int], None] | None = None,
                 **env_options) -> SearchResult:
     """Search for actions that track ``clip`` from ``start_frame`` to its end.
 
@@ -149,19 +153,22 @@ def search_clip(clip: ClipSource, start_frame: int = 0, config: SearchConfig = S
         start_frame: the reference frame the search starts from.
         config: the search's knobs.
         proposal: mean actions from observations (e.g. a policy's); ``None``: zero, the PD reference.
-        on_round: called with the furthest frame reached after every round (progress bars).
+        on_round: called after every round with the frames passed so far (the furthest frame
+            reached minus ``start_frame``) and the frames to the clip's end (progress bars).
         env_options: ``CrispTrack-v0`` keywords (e.g. ``velocity_feedforward=True``): the control
             law searched under; replay the actions in :func:`search_env` with the same ones.
     """
     env = search_env(clip, config.population, config.num_threads, **env_options)
     try:
-        return _search(env, start_frame, config, proposal, on_round)
+        result = _search(env, start_frame, config, proposal, on_round)
     finally:
         env.close()
+    result.env_options = dict(env_options)
+    return result
 
 
 def _search(env: CrispTrackVectorEnv, start_frame: int, config: SearchConfig, proposal: Proposal | None,
-            on_round: Callable[[int], None] | None) -> SearchResult:
+            on_round: Callable[[int, int], None] | None) -> SearchResult:
     if env.task.library.num_clips != 1:
         raise ValueError(f"a search tracks one clip, got the library {env.task.clip_names}")
     clip_index = 0
@@ -212,7 +219,7 @@ def _search(env: CrispTrackVectorEnv, start_frame: int, config: SearchConfig, pr
         if beam.frame > frontier:
             frontier, retries = beam.frame, 0
         if on_round is not None:
-            on_round(frontier)
+            on_round(frontier - start_frame, last - start_frame)
     return _best_lineage(env, clip_index, start_frame, kept, config, time.perf_counter() - started, rounds, last)
 
 
@@ -257,7 +264,7 @@ def plot_search(result: SearchResult, pd_errors: np.ndarray, termination_distanc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crisp_gym.train.plots import save_figure
+    from crisp_gym.atomic import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 3.5))
     frames = result.start_frame + 1 + np.arange(len(result.max_body_error))
@@ -313,15 +320,16 @@ def main(argv: list[str] | None = None) -> int:
         proposal, options = _policy_proposal(args.policy)
     pd_errors = pd_reference_errors(args.clip, args.start_frame, **options)
     with tqdm(desc="search", unit="frame") as bar:
-        def on_round(frontier: int) -> None:
-            bar.update(frontier - args.start_frame - bar.n)
+        def on_round(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
 
         result = search_clip(args.clip, args.start_frame, args.search, proposal, on_round, **options)
     limit = make_config(None, options).termination_distance
     pd_reached = args.start_frame + int(np.sum(pd_errors <= limit))  # its episode ends at the first error past it
     if result.whole:
         verdict = (f"tracked to its end (frame {result.reached}) within the termination distance, largest body "
-                   f"error {result.max_body_error.max():.2f} m: feasible for this humanoid from frame "
+                   f"error {result.max_body_error.max():.3f} m: feasible for this humanoid from frame "
                    f"{result.start_frame}")
     else:
         verdict = (f"no trajectory past frame {result.reached} found (a failed search proves nothing; where "

@@ -92,6 +92,7 @@ def test_the_cli_searches_around_a_policy_and_writes_its_result(tmp_path, capsys
     printed = capsys.readouterr().out
     assert "feasible for this humanoid from frame 120" in printed and "The PD reference alone: to frame" in printed
     saved = np.load(out / "search.npz")
+    assert not bool(saved["env_velocity_feedforward"])  # the flat_walk policy's own control law
     last = int(search_env("flat_walk", 1, 1).task.num_frames[0]) - 1
     assert bool(saved["whole"]) and int(saved["reached"]) == last and saved["actions"].shape == (last - 120, 69)
     assert (out / "search.png").stat().st_size > 0

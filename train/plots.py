@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crisp_gym.atomic import atomic_path
+from crisp_gym.atomic import save_figure
 from crisp_gym.train.rollouts import EvalResult, Rollout
 
 BODY_GROUPS = {
@@ -126,13 +126,3 @@ def plot_torques(rollout: Rollout, path: Path, title: str = "") -> None:
     ax2.set_ylabel("max |τ| (N·m)")
     ax2.set_xlabel("clip time (s)")
     save_figure(fig, path)
-
-
-def save_figure(fig, path: Path) -> None:
-    """Lay out, write atomically (100 dpi) and close a matplotlib figure."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)

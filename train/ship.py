@@ -95,7 +95,7 @@ def plot_learning_curve(progress: dict[str, np.ndarray], path: Path, title: str 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crisp_gym.train.plots import save_figure
+    from crisp_gym.atomic import save_figure
 
     frames = progress["frames"] / 1e6
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
