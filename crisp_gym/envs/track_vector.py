@@ -38,6 +38,7 @@ _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com",
 # and the applied forces, all zero after mj_resetData (the env moves no mocap body, and its
 # composed models have no plugins).
 _RESET_FIELDS = ("time", "act", "qacc_warmstart", "qfrc_applied", "xfrc_applied")
+_SNAPSHOT_FIELDS = ("qpos", "qvel", "ctrl", *_RESET_FIELDS)  # what the next step depends on
 
 
 @dataclass(frozen=True)
@@ -189,7 +190,7 @@ class CrispTrackVectorEnv(VectorEnv):
     def snapshot(self, ids: np.ndarray | None = None) -> EnvSnapshot:
         """The states of simulations ``ids`` (all by default), for :meth:`restore`."""
         ids = self._all if ids is None else np.asarray(ids, dtype=int)
-        return EnvSnapshot({name: self._fields[name][ids].copy() for name in ("qpos", "qvel", "ctrl") + _RESET_FIELDS},
+        return EnvSnapshot({name: self._fields[name][ids].copy() for name in _SNAPSHOT_FIELDS},
                            self._clip[ids].copy(), self._frame[ids].copy(), self._start_frame[ids].copy())
 
     def restore(self, snapshot: EnvSnapshot, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
