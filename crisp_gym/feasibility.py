@@ -128,11 +128,10 @@ class _Round:
 
 @dataclass
 class _Beam:
-    """The elites at a round boundary: their states, observations and the rounds behind them."""
+    """The elites at a round boundary: their states and the rounds behind them."""
 
     frame: int
     state: EnvSnapshot
-    obs: dict[str, np.ndarray]
     rounds: int  # how many kept rounds lead here
 
 
@@ -174,8 +173,8 @@ def _search(env: CrispTrackVectorEnv, start_frame: int, config: SearchConfig, pr
     clip_index = 0
     last = int(env.task.num_frames[clip_index]) - 1
     rng = np.random.default_rng(config.seed)
-    obs, _ = env.reset(seed=config.seed, options={"start_frame": start_frame, "clip": clip_index})
-    beam = _Beam(start_frame, env.snapshot(np.array([0])), {k: v[:1] for k, v in obs.items()}, 0)
+    env.reset(seed=config.seed, options={"start_frame": start_frame, "clip": clip_index})
+    beam = _Beam(start_frame, env.snapshot(np.array([0])), 0)
     saved = {start_frame: beam}
     kept: list[_Round] = []
     frontier, retries, rounds = start_frame, 0, 0
@@ -184,8 +183,7 @@ def _search(env: CrispTrackVectorEnv, start_frame: int, config: SearchConfig, pr
         rounds += 1
         steps = min(config.chunk, last - beam.frame)
         parents = np.arange(config.population) % len(beam.state)
-        env.restore(beam.state, parents)
-        current = {k: v[parents] for k, v in beam.obs.items()}
+        current = env.restore(beam.state, parents)
         offsets = rng.normal(0.0, config.sigma, (config.population, env.single_action_space.shape[0]))
         offsets[: len(beam.state)] = 0.0  # every elite's own continuation is a candidate
         alive = np.ones(config.population, dtype=bool)
@@ -213,8 +211,7 @@ def _search(env: CrispTrackVectorEnv, start_frame: int, config: SearchConfig, pr
             continue
         elites = survivors[np.argsort(cost[survivors], kind="stable")][: config.elites]
         kept.append(_Round(parents[elites], actions[:, elites], qpos[:, elites], error[:, elites]))
-        beam = _Beam(beam.frame + steps, env.snapshot(elites), {k: v[elites] for k, v in current.items()},
-                     len(kept))
+        beam = _Beam(beam.frame + steps, env.snapshot(elites), len(kept))
         saved[beam.frame] = beam
         if beam.frame > frontier:
             frontier, retries = beam.frame, 0

@@ -25,11 +25,14 @@ def test_a_restored_snapshot_continues_as_the_simulation_it_was_taken_from(sway_
     env.reset(seed=0, options={"start_frame": [0, 10, 20, 30]})
     rng = np.random.default_rng(0)
     _roll(env, rng.normal(0, 0.1, (3, 4, 69)))
+    last_obs, *_ = env.step(rng.normal(0, 0.1, (4, 69)))
     snapshot = env.snapshot()
     actions = rng.normal(0, 0.1, (5, 4, 69))
     original = _roll(env, actions)
 
-    env.restore(snapshot)
+    restored_obs = env.restore(snapshot)
+    for key, value in last_obs.items():  # a restore observes what the step into that state did
+        np.testing.assert_array_equal(restored_obs[key], value)
     for a, b in zip(_roll(env, actions), original, strict=True):
         for x, y in zip(a, b, strict=True):
             np.testing.assert_array_equal(x, y)  # bit for bit: the warm start is part of the state
