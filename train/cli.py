@@ -8,7 +8,6 @@ import torch
 import tyro
 
 from crisp_gym.train.config import PROFILES, TrainConfig
-from crisp_gym.train.ppo import train
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -24,6 +23,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = tyro.cli(TrainConfig, args=rest, default=PROFILES[profile](), prog="crisp train",
                    description=f"Train a tracking policy with PPO (defaults: the {profile!r} profile; "
                                f"--profile {{auto,paper,cpu}} picks another).")
+    # Imported once the flags parse: TorchRL and tensordict take seconds to import, which
+    # `--help` and a mistyped flag should not wait for.
+    from crisp_gym.train.ppo import train
+
     result = train(cfg)
     print(f"{result.iteration} iterations, {result.frames} frames; checkpoint: {result.checkpoint}")
     return 130 if result.interrupted else 0
