@@ -941,6 +941,54 @@ def test_collector_workers_must_split_the_simulations_and_give_way_to_ray() -> N
     assert cpu_profile(ray_workers=4).worker_processes == 0  # Ray collects: the profile's local workers do not apply
 
 
+def _session_processes(session: int, marker: str) -> list[int]:
+    """Pids of the processes of ``session`` whose command line contains ``marker``."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:  # the process ended meanwhile
+            continue
+        if int(fields[3]) == session and marker in cmdline:
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def test_a_terminals_interrupt_while_workers_start_stops_the_run(clip_dir: Path, tmp_path: Path) -> None:
+    """Ctrl-C in a terminal (SIGINT to the whole process group) while the spawned workers are
+    still importing, before they can ignore it: the run stops with its checkpoint, exit code 130,
+    and no worker is left. A worker killed there left the trainer waiting for it forever."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "crisp_gym.train.cli", "--profile", "cpu", "--clip", str(clip_dir), "-o", str(out),
+               "--num-envs", "4", "--steps-per-env", "4", "--collector-workers", "2", "--no-progress",
+               "--model.mlp-actor-hidden", "32", "--model.critic-hidden", "32"]
+    # a terminal's foreground job: SIGINT at its default, in a process group of its own
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not _session_processes(process.pid, "spawn_main") and time.monotonic() < deadline:
+            assert process.poll() is None, process.stderr.read().decode()[-2000:]
+            time.sleep(0.02)
+        assert _session_processes(process.pid, "spawn_main"), "no worker started"
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == 130, stderr.decode()[-2000:]
+    assert (out / "checkpoint.pt").is_file()
+    assert not _session_processes(process.pid, "spawn_main")
+
+
 def test_collector_workers_outlive_a_terminals_interrupt(clip_dir: Path) -> None:
     """A terminal's Ctrl-C sends SIGINT to every process of the group: the workers ignore it (and
     SIGTERM), and keep collecting until the trainer, which saves its checkpoint first, stops them.

@@ -188,13 +188,15 @@ class StopSignals:
     periodic checkpoint. Only the main thread can install handlers; elsewhere this does nothing.
 
     Inside :meth:`deferred` a signal is held until the block ends, so that an iteration's update,
-    its counters and its ``progress.csv`` row land together; a second signal stops at once.
+    its counters and its ``progress.csv`` row land together, and so that worker processes being
+    started are stopped once they can be; a second signal stops at once.
     """
 
     def __init__(self) -> None:
         self._previous: dict[int, Any] = {}
         self._deferring = False
         self._pending: str | None = None
+        self._until = "this iteration"
 
     def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
@@ -209,12 +211,13 @@ class StopSignals:
         name = signal.Signals(signum).name
         if self._deferring and self._pending is None:
             self._pending = name
-            print(f"{name}: stopping after this iteration (again to stop at once)", file=sys.stderr)
+            print(f"{name}: stopping after {self._until} (again to stop at once)", file=sys.stderr)
             return
         raise KeyboardInterrupt(name)
 
     @contextlib.contextmanager
-    def deferred(self) -> Iterator[None]:
+    def deferred(self, until: str = "this iteration") -> Iterator[None]:
+        self._until = until
         self._deferring = True
         try:
             yield
@@ -402,8 +405,7 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
                 kept[:] = failures
             if counts is not None:
                 counts.scatter()
-    collector = _collector(cfg, env, env_fn or make_env, agent, device, iteration, counts)
-    evaluation = confirmation = None
+    evaluation = confirmation = collector = None
     evaluation_env = dict(scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
                           velocity_feedforward=cfg.velocity_feedforward)
     if cfg.eval_every:
@@ -421,6 +423,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
     interrupted = stopped_early = False
     try:
         stop_signals = stack.enter_context(StopSignals())
+        with stop_signals.deferred("the workers start"):  # then they can be stopped
+            collector = _collector(cfg, env, env_fn or make_env, agent, device, iteration, counts)
         batches = iter(collector)
         while frames < cfg.frames:
             collect_start, env_before = time.perf_counter(), env.env_time
@@ -518,7 +522,8 @@ def train(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any] | None = N
         stack.close()
         bar.close()
         logger.close()
-        collector.shutdown()
+        if collector is not None:
+            collector.shutdown()
         if counts is not None:
             counts.close()
         for evaluator in (evaluation, confirmation):

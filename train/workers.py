@@ -17,9 +17,10 @@ as a copy; a file's path arrives as itself.)
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -83,12 +84,32 @@ def worker_config(cfg: TrainConfig) -> TrainConfig:
     return replace(cfg, num_envs=cfg.num_envs // cfg.worker_processes, num_threads=1, collector_workers=0)
 
 
+STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
+"""What stops a run: a terminal's Ctrl-C, and a scheduler's or session's end."""
+
+
 def ignore_stop_signals() -> None:
-    """Run first in every worker: ignore SIGINT and SIGTERM. A terminal's Ctrl-C reaches every
-    process of its group, and a worker that died of it left the trainer waiting for its reply
-    forever, where the trainer should save its checkpoint and then stop the workers itself."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    """Run first in every worker: ignore SIGINT and SIGTERM, then let them through (they were held
+    from the worker's birth, :func:`stop_signals_held`; one held meanwhile is dropped). A terminal's
+    Ctrl-C reaches every process of its group, and a worker that died of it left the trainer
+    waiting for its reply forever, where the trainer should save its checkpoint and then stop the
+    workers itself."""
+    for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+@contextlib.contextmanager
+def stop_signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back from this thread inside the block, and from the processes it
+    starts until they let them through themselves. A spawned worker spends seconds importing
+    before :func:`ignore_stop_signals` runs; a Ctrl-C then killed it and the trainer waited for it
+    forever. A signal held in this thread arrives when the block ends."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def worker_env(env_fn: Callable[[TrainConfig, int], Any], cfg: TrainConfig, seed: int, counts: Path) -> Any:
@@ -108,11 +129,13 @@ def worker_collector(cfg: TrainConfig, env_fn: Callable[[TrainConfig, int], Any]
     from torchrl.collectors import MultiSyncCollector  # noqa: PLC0415
 
     local = worker_config(cfg)
-    collector = MultiSyncCollector(
-        [partial(worker_env, env_fn, local, seed + k, path) for k, path in enumerate(counts.paths)],
-        policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1, env_device="cpu",
-        policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1, init_fn=ignore_stop_signals,
-        num_threads=torch.get_num_threads())  # its default: the trainer's threads cut to the CPUs minus the workers
+    with stop_signals_held():  # the workers are born with them held (a mask survives fork and exec)
+        collector = MultiSyncCollector(
+            [partial(worker_env, env_fn, local, seed + k, path) for k, path in enumerate(counts.paths)],
+            policy, frames_per_batch=cfg.frames_per_iteration, total_frames=-1, env_device="cpu",
+            policy_device="cpu", storing_device="cpu", cat_results="stack", num_sub_threads=1,
+            init_fn=ignore_stop_signals,
+            num_threads=torch.get_num_threads())  # its default: the trainer's threads cut to the CPUs minus the workers
     collector.set_seed(seed)  # the workers' torch generators, which sample the actions
     collector.update_policy_weights_()
     return collector
