@@ -58,6 +58,11 @@ def test_reset_matches_reference_and_pd_tracking_runs_clean(sway_clip, clip):
             break
     assert steps <= env.task.num_frames[0] - 1
     assert info["success"] == truncated and (truncated or info["max_body_error"] > 0.5)
+    # the farthest body is the one the error is measured on
+    row = env.task.library.global_frames(env._clip, env._frame)[0]
+    distances = np.linalg.norm(env.task.reference.body_pos[row] - env._state().body_pos[0], axis=-1)
+    assert info["farthest_body"] == int(np.argmax(distances))
+    assert info["max_body_error"] == pytest.approx(distances.max())
 
 
 def test_single_and_batched_envs_agree_step_by_step(sway_clip):

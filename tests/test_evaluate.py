@@ -11,6 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.train.rollouts import evaluate, record_rollout, torch_policy, zero_policy
 from crisp_gym.train.tracking_metrics import accel_error, jitter, rigid_align, segment_mpjpe
 from tests.test_train import SMALL_MLP, _obs, clip_dir  # noqa: F401  (clip_dir is a fixture)
@@ -171,6 +172,28 @@ def test_failure_clusters_group_nearby_ends() -> None:
     # a gap of exactly `gap` frames joins, one more splits
     assert failure_clusters(np.array([10, 13, 17]), np.ones(3, dtype=bool), min_episodes=1) == [
         {"first_frame": 10, "last_frame": 13, "episodes": 2}, {"first_frame": 17, "last_frame": 17, "episodes": 1}]
+    # with the bodies that ended each episode: counted per cluster, most first
+    hand, toe, head = BODY_NAMES.index("R_Hand"), BODY_NAMES.index("R_Toe"), BODY_NAMES.index("Head")
+    bodies = np.array([hand, toe, hand, head, head, toe, toe, hand, toe, toe, hand, hand])
+    clusters = failure_clusters(ends, failed, bodies)
+    assert [c["bodies"] for c in clusters] == [{"R_Toe": 3, "R_Hand": 1}, {"R_Hand": 2, "R_Toe": 1}, {"Head": 2}]
+    assert [{k: v for k, v in c.items() if k != "bodies"} for c in clusters] == failure_clusters(ends, failed)
+
+
+def _farthest_body_at_the_end(clip: Path, start: int) -> str:
+    """The PD reference's episode from ``start`` in the single env: the body farthest from its
+    reference after the last step, measured here from the simulation's body positions."""
+    from crisp_gym.envs.track import CrispTrackEnv
+
+    env = CrispTrackEnv(clip=str(clip))
+    env.reset(seed=0, options={"start_frame": start})
+    while True:
+        _, _, terminated, truncated, _ = env.step(np.zeros(69, dtype=np.float32))
+        if terminated or truncated:
+            break
+    reference = env.task.reference.body_pos[env.task.library.global_frames(env._clip, env._frame)[0]]
+    body_pos = np.array([env.data.xpos[env.model.body(name).id] for name in BODY_NAMES])
+    return BODY_NAMES[int(np.argmax(np.linalg.norm(reference - body_pos, axis=-1)))]
 
 
 def test_start_sweep_matches_single_starts(clip_dir: Path) -> None:  # noqa: F811
@@ -179,10 +202,11 @@ def test_start_sweep_matches_single_starts(clip_dir: Path) -> None:  # noqa: F81
 
     entry, sweep = start_sweep(zero_policy, clip_dir, 20, 90)
     assert entry["start_frames"] == [0, 20, 40, 60, 80]
-    for start, end, ok in zip(entry["start_frames"], entry["end_frames"], entry["success"]):
+    for start, end, ok, body in zip(entry["start_frames"], entry["end_frames"], entry["success"], entry["end_bodies"]):
         alone = evaluate(zero_policy, clip_dir, [start])
         assert end == start + alone.lengths[0] and ok == bool(alone.success[0])
         assert start < end <= 89 and ok == (end == 89)
+        assert body == _farthest_body_at_the_end(clip_dir, start)
     assert entry["success_rate"] == pytest.approx(np.mean(entry["success"]))
     with pytest.raises(ValueError, match="start-every"):
         start_sweep(zero_policy, clip_dir, 0, 90)

@@ -94,6 +94,7 @@ def test_library_simulation_matches_the_single_clip_env_step_by_step(sway_clip, 
         sobs = [r[0] for r in results]
         np.testing.assert_allclose(vrew, [r[1] for r in results], rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(vinfo["max_body_error"], [r[4]["max_body_error"] for r in results], atol=1e-6)
+        assert vinfo["farthest_body"].tolist() == [r[4]["farthest_body"] for r in results]
         assert vterm.tolist() == [r[2] for r in results] and not vtrunc.any()
     for env, offset in zip(singles, (venv.task.library.regions[1].offset, venv.task.library.regions[2].offset)):
         np.testing.assert_allclose(env.data.qpos[:2] + offset[:2], venv._fields["qpos"][singles.index(env), :2],

@@ -170,8 +170,10 @@ def test_reward_terms_and_errors_match_per_body_reference(state, ref, rng):
             np.testing.assert_allclose(got[term][n], weight * np.exp(-sharpness * error), **tol)
         power = sum(abs(state.servo_torque[n, i] * state.qvel[n, 6 + i]) for i in range(69))
         np.testing.assert_allclose(got["energy"][n], -cfg.w_energy * power, **TOL)
-        np.testing.assert_allclose(tracking.max_body_error(state, ref, frame)[n], max(dist), **TOL)
-    assert tracking.max_body_error(state, ref, frame)[0] == 0.0
+        farthest_error, farthest = tracking.farthest_body(state, ref, frame)
+        np.testing.assert_allclose(farthest_error[n], max(dist), **TOL)
+        assert n == 0 or farthest[n] == int(np.argmax(dist))  # (all zero on the reference)
+    assert tracking.farthest_body(state, ref, frame)[0][0] == 0.0
 
 
 @pytest.mark.parametrize("residual", [True, False])

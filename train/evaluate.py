@@ -11,7 +11,9 @@ rolls the policy's mean action (no exploration noise) out in ``CrispTrack-v0`` t
 * with ``--start-every K``, a **start sweep**: one episode from each of frames 0, K, 2K, …
   (batched); ``starts.png`` plots where each ended against where it started, and the report's
   ``start_sweep.failure_clusters`` lists the frames where failed episodes pile up: the parts
-  of the clip no start gets through (a fast kick, a rise from a seat), whatever led there.
+  of the clip no start gets through (a fast kick, a rise from a seat), whatever led there, and
+  which bodies ended those episodes (``end_bodies``: the body farthest from its reference at
+  each episode's end: a hand, a toe, the head).
 
 Metrics (paper, Sec. 4, after WHAM/TRAM), over the 24 body origins (the joints) of the
 simulated humanoid against the reference (positions in metres, errors in millimetres):
@@ -48,6 +50,7 @@ import tyro
 
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.html_report import Section, rows_from, write_html_report
+from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.train.plots import plot_start_sweep, plot_torques, plot_tracking
 from crisp_gym.train.rollouts import (
     EvalResult,
@@ -133,7 +136,8 @@ def start_sweep(policy: Policy, clip: str | os.PathLike, every: int, num_frames:
     sweep = evaluate(policy, clip, np.arange(0, num_frames - 1, every), scene_aware=scene_aware, **env_kwargs)
     entry = {"every": every, "start_frames": sweep.start_frames.tolist(), "end_frames": sweep.end_frames.tolist(),
              "success": sweep.success.tolist(), "success_rate": sweep.success_rate,
-             "failure_clusters": failure_clusters(sweep.end_frames, ~sweep.success)}
+             "end_bodies": [BODY_NAMES[b] for b in sweep.end_bodies],
+             "failure_clusters": failure_clusters(sweep.end_frames, ~sweep.success, sweep.end_bodies)}
     return entry, sweep
 
 
@@ -220,9 +224,13 @@ def main(argv: list[str] | None = None) -> int:
         if "start_sweep" in row:
             sweep = row["start_sweep"]
             piles = ", ".join((f"frame {c['first_frame']}" if c["first_frame"] == c["last_frame"] else
-                               f"frames {c['first_frame']}-{c['last_frame']}") + f" ({c['episodes']} episodes)"
+                               f"frames {c['first_frame']}-{c['last_frame']}") + f" ({c['episodes']} episodes: "
+                              + ", ".join(f"{body} {n}" for body, n in c["bodies"].items()) + ")"
                               for c in sweep["failure_clusters"]) or "nowhere"
-            print(f"  from every {sweep['every']}th frame: {sweep['success_rate']:.0%} reach the end; "
+            k = sweep["every"]
+            suffix = "th" if k % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
+            every = "every frame" if k == 1 else f"every {k}{suffix} frame"
+            print(f"  from {every}: {sweep['success_rate']:.0%} reach the end; "
                   f"failed episodes pile up at {piles}")
     where = " and one folder per clip, each with its report.html" if "clips" in report else \
         f"; open {args.output}/report.html"

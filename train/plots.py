@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from crisp_gym.atomic import save_figure
-from crisp_gym.train.rollouts import EvalResult, Rollout
+from crisp_gym.train.rollouts import EvalResult, Rollout, failure_clusters
 
 BODY_GROUPS = {
     "legs": ("Hip", "Knee", "Ankle", "Toe"),
@@ -82,7 +82,8 @@ def plot_evaluations(progress_csv: Path, path: Path, clip_frames: dict[str, int]
 
 def plot_start_sweep(sweep: EvalResult, last_frame: int, path: Path, title: str = "") -> None:
     """Where each episode of a start sweep ended (y) against where it started (x): successes
-    reach ``last_frame``; failures that line up horizontally are places no start gets past."""
+    reach ``last_frame``; failures that line up horizontally are places no start gets past, each
+    labelled with the body that ended most of its episodes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,12 +94,19 @@ def plot_start_sweep(sweep: EvalResult, last_frame: int, path: Path, title: str 
     ok = sweep.success
     ax.scatter(sweep.start_frames[ok], sweep.end_frames[ok], color="tab:green", s=18, label="reached the end")
     ax.scatter(sweep.start_frames[~ok], sweep.end_frames[~ok], color="tab:red", s=18, label="terminated")
+    labelled: list[int] = []  # right of the diagonal nothing is plotted; the biggest piles first
+    for cluster in failure_clusters(sweep.end_frames, ~ok, sweep.end_bodies):
+        if all(abs(cluster["first_frame"] - y) > 0.04 * last_frame for y in labelled):
+            body, count = next(iter(cluster["bodies"].items()))
+            ax.text(last_frame, cluster["first_frame"], f"{body}: {count} of {cluster['episodes']} ended here ",
+                    fontsize=8, color="tab:red", ha="right", va="center")
+            labelled.append(cluster["first_frame"])
     ax.set_xlabel("start frame")
     ax.set_ylabel("frame the episode ended at")
     ax.set_xlim(-1, last_frame + 1)
     ax.set_ylim(-1, last_frame + 3)
     ax.set_title(title)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="upper left")
     ax.grid(alpha=0.3)
     save_figure(fig, path)
 

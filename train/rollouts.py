@@ -17,6 +17,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from crisp_gym.envs.tracking import servo_torque, terms_from_info
+from crisp_gym.humanoid import BODY_NAMES
 from crisp_gym.policy.networks import ACTION_DIM
 from crisp_gym.train.tracking_metrics import accel_error, jitter, segment_mpjpe
 
@@ -74,6 +75,9 @@ class EvalResult:
         start_frames: (S,) the episodes' start frames.
         seconds: wall time of the batched rollout (policy and simulation).
         clips: (S,) the episodes' clip indices (into the env's ``task.clip_names``).
+        end_bodies: (S,) the body farthest from its reference at each episode's last step
+            (index into ``crisp_gym.humanoid.BODY_NAMES``): for a failed episode, the one that
+            ended it.
     """
 
     returns: np.ndarray
@@ -82,6 +86,7 @@ class EvalResult:
     start_frames: np.ndarray
     seconds: float
     clips: np.ndarray
+    end_bodies: np.ndarray
 
     @property
     def mean_return(self) -> float:
@@ -102,21 +107,34 @@ class EvalResult:
         return self.start_frames + self.lengths
 
 
-def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, *, gap: int = 3,
-                     min_episodes: int = 2) -> list[dict[str, int]]:
+def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, end_bodies: np.ndarray | None = None, *,
+                     gap: int = 3, min_episodes: int = 2) -> list[dict[str, Any]]:
     """Frames where failed episodes pile up: the failed episodes' end frames, sorted and split
     wherever two are more than ``gap`` frames apart; groups of at least ``min_episodes`` as
-    ``{"first_frame", "last_frame", "episodes"}``, most episodes first.
+    ``{"first_frame", "last_frame", "episodes"}``, most episodes first. With ``end_bodies``
+    (each episode's :attr:`EvalResult.end_bodies`) a group also says which bodies ended its
+    episodes: ``"bodies"``, body name to count, most first.
 
     Episodes started at different frames that end at the same place mark a part of the clip
     the controller cannot get through, whatever its state on the way there.
     """
-    ends = np.sort(np.asarray(end_frames)[np.asarray(failed, dtype=bool)])
+    failed = np.asarray(failed, dtype=bool)
+    order = np.argsort(np.asarray(end_frames)[failed], kind="stable")
+    ends = np.asarray(end_frames)[failed][order]
     if len(ends) == 0:
         return []
-    groups = np.split(ends, np.flatnonzero(np.diff(ends) > gap) + 1)
-    clusters = [{"first_frame": int(g[0]), "last_frame": int(g[-1]), "episodes": len(g)}
-                for g in groups if len(g) >= min_episodes]
+    splits = np.flatnonzero(np.diff(ends) > gap) + 1
+    clusters = []
+    for frames, members in zip(np.split(ends, splits), np.split(order, splits)):
+        if len(frames) < min_episodes:
+            continue
+        cluster: dict[str, Any] = {"first_frame": int(frames[0]), "last_frame": int(frames[-1]),
+                                   "episodes": len(frames)}
+        if end_bodies is not None:
+            names, counts = np.unique(np.asarray(BODY_NAMES)[np.asarray(end_bodies)[failed][members]],
+                                      return_counts=True)
+            cluster["bodies"] = {str(names[i]): int(counts[i]) for i in np.argsort(-counts, kind="stable")}
+        clusters.append(cluster)
     return sorted(clusters, key=lambda c: (-c["episodes"], c["first_frame"]))
 
 
@@ -132,14 +150,18 @@ def run_episodes(policy: Policy, env: Any, *, seed: int = 0, options: dict | Non
     returns = np.zeros(count)
     lengths = np.zeros(count, dtype=int)
     success = np.zeros(count, dtype=bool)
+    end_bodies = np.zeros(count, dtype=int)
     running = np.ones(count, dtype=bool)
     while running.any():
-        obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        obs, reward, terminated, truncated, step_info = env.step(policy(obs))
         returns += np.where(running, reward, 0.0)
         lengths += running
         success |= running & truncated
-        running &= ~(terminated | truncated)
-    return EvalResult(returns, lengths, success, info["start_frame"], time.perf_counter() - start, info["clip"])
+        ending = running & (terminated | truncated)
+        end_bodies[ending] = step_info["farthest_body"][ending]
+        running &= ~ending
+    return EvalResult(returns, lengths, success, info["start_frame"], time.perf_counter() - start, info["clip"],
+                      end_bodies)
 
 
 @torch.no_grad()

@@ -104,23 +104,26 @@ class TrackingTask:
             obs["points"] = points
         return {k: v.astype(np.float32) for k, v in obs.items()}
 
-    def tracking_error(self, state: tracking.SimState, clips: np.ndarray, frames: np.ndarray) -> np.ndarray:
-        """(N,) largest distance (m) of any body from its reference."""
-        return tracking.max_body_error(state, self.reference, self.library.global_frames(clips, frames))
+    def tracking_error(self, state: tracking.SimState, clips: np.ndarray,
+                       frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) largest distance (m) of any body from its reference, and (N,) which body (index in
+        ``BODY_NAMES``)."""
+        return tracking.farthest_body(state, self.reference, self.library.global_frames(clips, frames))
 
     def evaluate(self, state: tracking.SimState, clips: np.ndarray, frames: np.ndarray):
-        """Reward, its terms, termination, truncation (end of clip), the tracking error, and whether
-        the simulation is blowing up (a state not finite, or a hinge faster than ``max_joint_speed``)."""
+        """Reward, its terms, termination, truncation (end of clip), the tracking error and the body
+        farthest from its reference, and whether the simulation is blowing up (a state not finite,
+        or a hinge faster than ``max_joint_speed``)."""
         rows = self.library.global_frames(clips, frames)
         terms = tracking.reward_terms(state, self.reference, rows, self.config)
         reward = sum(terms.values())
-        error = tracking.max_body_error(state, self.reference, rows)
+        error, farthest = tracking.farthest_body(state, self.reference, rows)
         finite = np.isfinite(state.qpos).all(axis=1) & np.isfinite(state.qvel).all(axis=1)
         with np.errstate(invalid="ignore"):
             unstable = ~finite | (np.abs(state.qvel[:, 6:]).max(axis=1) > self.config.max_joint_speed)
         terminated = (error > self.config.termination_distance) | unstable
         truncated = (frames >= self.num_frames[clips] - 1) & ~terminated
-        return np.where(finite, reward, 0.0), terms, terminated, truncated, error, unstable
+        return np.where(finite, reward, 0.0), terms, terminated, truncated, error, farthest, unstable
 
     def controls(self, action: np.ndarray, clips: np.ndarray, next_frames: np.ndarray) -> np.ndarray:
         action = np.asarray(action, dtype=float)

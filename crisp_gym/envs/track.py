@@ -74,7 +74,9 @@ class CrispTrackEnv(gym.Env):
 
     ## Info
     ``clip`` (index into ``env.task.clip_names``), ``frame``, ``start_frame``,
-    the six ``reward_*`` terms, ``max_body_error`` (m), ``success``, ``unstable`` (the simulation
+    the six ``reward_*`` terms, ``max_body_error`` (m), ``farthest_body`` (the body it is measured
+    on, index into ``crisp_gym.humanoid.BODY_NAMES``: on termination, the body that ended the episode),
+    ``success``, ``unstable`` (the simulation
     blew up: see ``max_joint_speed``); the same keys after ``reset`` (terms 0, no success yet).
     """
 
@@ -121,13 +123,14 @@ class CrispTrackEnv(gym.Env):
         mujoco.mj_step1(self.model, self.data)
         state = self._state()
         obs = self.task.observe(state, clips, frames)
-        error = self.task.tracking_error(state, clips, frames)
+        error, farthest = self.task.tracking_error(state, clips, frames)
         if self.render_mode == "human":
             self.render()
         return ({k: v[0] for k, v in obs.items()},
                 {"clip": int(clips[0]), "frame": self._start_frame, "start_frame": self._start_frame,
                  **{f"reward_{name}": 0.0 for name in tracking.REWARD_TERMS},
-                 "max_body_error": float(error[0]), "success": False, "unstable": False})
+                 "max_body_error": float(error[0]), "farthest_body": int(farthest[0]), "success": False,
+                 "unstable": False})
 
     def step(self, action):
         next_frame = self._frame + 1
@@ -142,14 +145,16 @@ class CrispTrackEnv(gym.Env):
         failed = self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > blowups
         self._frame = next_frame
         state = self._state()
-        reward, terms, terminated, truncated, error, unstable = self.task.evaluate(state, self._clip, next_frame)
+        reward, terms, terminated, truncated, error, farthest, unstable = self.task.evaluate(state, self._clip,
+                                                                                           next_frame)
         unstable, terminated, truncated = unstable | failed, terminated | failed, truncated & ~failed
         obs = self.task.observe(state, self._clip, next_frame)
         if terminated[0] or truncated[0]:
             self.start_sampler.record(self._clip, next_frame, terminated)
         info = {"clip": int(self._clip[0]), "frame": int(next_frame[0]), "start_frame": self._start_frame,
                 **{k: float(v[0]) for k, v in tracking.reward_info(terms).items()},
-                "max_body_error": float(error[0]), "success": bool(truncated[0]), "unstable": bool(unstable[0])}
+                "max_body_error": float(error[0]), "farthest_body": int(farthest[0]), "success": bool(truncated[0]),
+                "unstable": bool(unstable[0])}
         if self.render_mode == "human":
             self.render()
         return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]),

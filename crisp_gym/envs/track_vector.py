@@ -227,14 +227,15 @@ class CrispTrackVectorEnv(VectorEnv):
         self._forward(self._all)
         self._needs_reset[:] = False
         obs = self._start_observation(self._all)
-        error = self.task.tracking_error(self._state(), self._clip, self._frame)
+        error, farthest = self.task.tracking_error(self._state(), self._clip, self._frame)
         # The same keys as a step's info (terms zero, no success yet): wrappers that read infos
         # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
         terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
         if self.render_mode == "human":
             self.render()
         return obs, {"clip": self._clip.copy(), "frame": self._frame.copy(), "start_frame": self._start_frame.copy(),
-                     **terms, "max_body_error": error, "success": np.zeros(self.num_envs, dtype=bool),
+                     **terms, "max_body_error": error, "farthest_body": farthest,
+                     "success": np.zeros(self.num_envs, dtype=bool),
                      "unstable": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
@@ -255,14 +256,16 @@ class CrispTrackVectorEnv(VectorEnv):
             failed = np.isin(self._all, err.ids)
         self._frame = next_frame
         state = self._state()
-        reward, terms, terminated, truncated, error, unstable = self.task.evaluate(state, self._clip, next_frame)
+        reward, terms, terminated, truncated, error, farthest, unstable = self.task.evaluate(state, self._clip,
+                                                                                           next_frame)
         unstable = unstable | failed
         terminated = terminated | failed
         truncated = truncated & ~failed
         obs = self.task.observe(state, self._clip, next_frame)
         info: dict[str, Any] = {"clip": self._clip.copy(), "frame": next_frame.copy(),
                                 "start_frame": self._start_frame.copy(), **reward_info(terms),
-                                "max_body_error": error, "success": truncated.copy(), "unstable": unstable}
+                                "max_body_error": error, "farthest_body": farthest, "success": truncated.copy(),
+                                "unstable": unstable}
         done = terminated | truncated
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
             return self._next_step_autoreset(obs, reward, terminated, truncated, info)
@@ -276,8 +279,8 @@ class CrispTrackVectorEnv(VectorEnv):
                 info["final_obs"][i] = {k: v[j] for k, v in last.items()}
                 info["final_info"][i] = {"clip": int(self._clip[i]), "frame": int(next_frame[i]),
                                          "start_frame": int(self._start_frame[i]),
-                                         "max_body_error": float(error[i]), "success": bool(truncated[i]),
-                                         "unstable": bool(unstable[i])}
+                                         "max_body_error": float(error[i]), "farthest_body": int(farthest[i]),
+                                         "success": bool(truncated[i]), "unstable": bool(unstable[i])}
             info["_final_obs"] = done.copy()
             info["_final_info"] = done.copy()
             self._reset_sims(ids, *self.start_sampler.sample(self.np_random, len(ids)))
@@ -307,8 +310,8 @@ class CrispTrackVectorEnv(VectorEnv):
             info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]
             info["start_frame"][ids] = self._start_frame[ids]
             self._forward(ids)
-            info["max_body_error"][ids] = self.task.tracking_error(self._state(ids), self._clip[ids],
-                                                                   self._frame[ids])
+            info["max_body_error"][ids], info["farthest_body"][ids] = self.task.tracking_error(
+                self._state(ids), self._clip[ids], self._frame[ids])
         self._needs_reset = finished
         return obs, reward.astype(np.float64), terminated, truncated, info
 

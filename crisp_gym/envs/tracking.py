@@ -285,13 +285,15 @@ def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackC
             "energy": -cfg.w_energy * power}
 
 
-def max_body_error(state: SimState, ref: Reference, frame: np.ndarray) -> np.ndarray:
-    """(N,) largest distance (m) of any body from its reference."""
+def farthest_body(state: SimState, ref: Reference, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) the largest distance (m) of any body from its reference, and (N,) which body that is
+    (its index in :data:`~crisp_gym.humanoid.BODY_NAMES`): the one that ends an episode."""
     diff = ref.body_pos[frame] - state.body_pos
     diff *= diff
     dist = diff[..., 0] + diff[..., 1]  # squared, summed as np.linalg.norm does
     dist += diff[..., 2]
-    return np.sqrt(dist.max(-1))
+    body = dist.argmax(-1)
+    return np.sqrt(dist[np.arange(len(body)), body]), body
 
 
 def hinge_ranges() -> np.ndarray:
