@@ -202,7 +202,8 @@ def test_start_sweep_matches_single_starts(clip_dir: Path) -> None:  # noqa: F81
 
     entry, sweep = start_sweep(zero_policy, clip_dir, 20, 90)
     assert entry["start_frames"] == [0, 20, 40, 60, 80]
-    for start, end, ok, body in zip(entry["start_frames"], entry["end_frames"], entry["success"], entry["end_bodies"]):
+    for start, end, ok, body in zip(entry["start_frames"], entry["end_frames"], entry["success"], entry["end_bodies"],
+                                   strict=True):
         alone = evaluate(zero_policy, clip_dir, [start])
         assert end == start + alone.lengths[0] and ok == bool(alone.success[0])
         assert start < end <= 89 and ok == (end == 89)

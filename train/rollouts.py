@@ -125,7 +125,7 @@ def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, end_bodies: np.
         return []
     splits = np.flatnonzero(np.diff(ends) > gap) + 1
     clusters = []
-    for frames, members in zip(np.split(ends, splits), np.split(order, splits)):
+    for frames, members in zip(np.split(ends, splits), np.split(order, splits), strict=True):
         if len(frames) < min_episodes:
             continue
         cluster: dict[str, Any] = {"first_frame": int(frames[0]), "last_frame": int(frames[-1]),
