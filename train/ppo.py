@@ -62,7 +62,7 @@ from crisp_gym.train.checkpoints import (check_resumable, evaluation_meets, eval
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict, native_bfloat16
 from crisp_gym.train.rollouts import LibraryEvaluation, single_cpu_thread, torch_policy
 from crisp_gym.train.run_log import RunLogger, clip_fields, confirmation_row, evaluation_row
-from crisp_gym.train.workers import SharedStartCounts, worker_collector, worker_config
+from crisp_gym.train.workers import STOP_SIGNALS, SharedStartCounts, worker_collector, worker_config
 
 
 @dataclass
@@ -200,7 +200,7 @@ class StopSignals:
 
     def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
-            self._previous = {sig: signal.signal(sig, self._interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+            self._previous = {sig: signal.signal(sig, self._interrupt) for sig in STOP_SIGNALS}
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -119,10 +119,12 @@ def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, end_bodies: np.
     the controller cannot get through, whatever its state on the way there.
     """
     failed = np.asarray(failed, dtype=bool)
-    order = np.argsort(np.asarray(end_frames)[failed], kind="stable")
-    ends = np.asarray(end_frames)[failed][order]
+    failed_ends = np.asarray(end_frames)[failed]
+    order = np.argsort(failed_ends, kind="stable")
+    ends = failed_ends[order]
     if len(ends) == 0:
         return []
+    failed_bodies = None if end_bodies is None else np.asarray(BODY_NAMES)[np.asarray(end_bodies)[failed]]
     splits = np.flatnonzero(np.diff(ends) > gap) + 1
     clusters = []
     for frames, members in zip(np.split(ends, splits), np.split(order, splits), strict=True):
@@ -130,9 +132,8 @@ def failure_clusters(end_frames: np.ndarray, failed: np.ndarray, end_bodies: np.
             continue
         cluster: dict[str, Any] = {"first_frame": int(frames[0]), "last_frame": int(frames[-1]),
                                    "episodes": len(frames)}
-        if end_bodies is not None:
-            names, counts = np.unique(np.asarray(BODY_NAMES)[np.asarray(end_bodies)[failed][members]],
-                                      return_counts=True)
+        if failed_bodies is not None:
+            names, counts = np.unique(failed_bodies[members], return_counts=True)
             cluster["bodies"] = {str(names[i]): int(counts[i]) for i in np.argsort(-counts, kind="stable")}
         clusters.append(cluster)
     return sorted(clusters, key=lambda c: (-c["episodes"], c["first_frame"]))
