@@ -310,6 +310,12 @@ def test_single_pass_values_match_torchrl_gae(clip_dir: Path) -> None:
 # ----------------------------------------------------------------------------- training
 
 
+def _progress_rows(path: Path) -> list[dict[str, str]]:
+    """A run's ``progress.csv`` as its rows, read as a user would (strings, empty cells kept)."""
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
 def _tiny_config(clip_dir: Path, output: Path, **overrides) -> "TrainConfig":  # noqa: F821
     from crisp_gym.train.config import cpu_profile
 
@@ -368,7 +374,7 @@ def test_policy_improves_on_fixed_start_frames(trained_run) -> None:
 
 def test_progress_csv_and_config(trained_run) -> None:
     cfg, result, _, _ = trained_run
-    rows = list(csv.DictReader(open(Path(cfg.output) / "progress.csv")))
+    rows = _progress_rows(Path(cfg.output) / "progress.csv")
     assert [int(r["iteration"]) for r in rows] == list(range(1, 9))
     assert int(rows[-1]["frames"]) == result.frames
     assert (Path(cfg.output) / "config.json").is_file()
@@ -523,8 +529,7 @@ def test_resumed_log_drops_iterations_after_the_checkpoint(tmp_path: Path) -> No
     logger = RunLogger(tmp_path, append=True, iteration=3)
     logger.log({"iteration": 4, "frames": 400, "time_s": 7.0})
     logger.close()
-    with open(tmp_path / "progress.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _progress_rows(tmp_path / "progress.csv")
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3, 4]
     # the resumed segment's clock restarts: wall time adds the segments (30 s + 7 s)
     assert run_wall_time(tmp_path / "progress.csv") == pytest.approx(37.0)
@@ -624,8 +629,7 @@ def test_periodic_evaluation_is_logged_and_plotted(clip_dir: Path, tmp_path: Pat
 
     cfg = _tiny_config(clip_dir, tmp_path, num_envs=4, frames=4 * 128, eval_every=2, eval_episodes=4)
     result = train(cfg)
-    with open(tmp_path / "progress.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _progress_rows(tmp_path / "progress.csv")
     evaluated = [r for r in rows if r["eval_success_min"]]
     assert [int(r["iteration"]) for r in evaluated] == [2, 4] and result.iteration == 4
     for r in evaluated:
@@ -681,7 +685,7 @@ def test_until_success_stops_only_once_other_starts_confirm_it(clip_dir: Path, t
     periodic_starts, confirmation_starts = starts[False], starts[True]
     assert periodic_starts[0] == confirmation_starts[0] == 0  # both also run the clip from frame 0
     assert periodic_starts[1:] != confirmation_starts[1:7]  # other RSI starts
-    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    rows = _progress_rows(tmp_path / "progress.csv")
     assert [r[f"confirm_success/{clip_dir.name}"] for r in rows] == ["", "0.8", "1.0"]
     assert (tmp_path / "evaluation.png").is_file()  # drawn with the confirmations
     # the second evaluation scored as well as the third but failed its confirmation
@@ -689,7 +693,7 @@ def test_until_success_stops_only_once_other_starts_confirm_it(clip_dir: Path, t
     assert load_checkpoint(tmp_path / BEST_NAME)["iteration"] == 3
     # resumed without the stop rule, the log keeps its columns
     train(replace(cfg, until_success=None, frames=4 * 128, resume=True))
-    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    rows = _progress_rows(tmp_path / "progress.csv")
     assert [r[f"confirm_success/{clip_dir.name}"] for r in rows] == ["", "0.8", "1.0", ""]
 
 
@@ -728,7 +732,7 @@ def test_stop_signal_to_a_background_run_saves_its_checkpoint(clip_dir: Path, tm
     process.send_signal(getattr(signal, sig))
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 130, stderr.decode()[-2000:]
-    rows = list(csv.DictReader(open(out / "progress.csv")))
+    rows = _progress_rows(out / "progress.csv")
     assert load_checkpoint(out)["iteration"] == int(rows[-1]["iteration"]) >= 3
 
 
@@ -751,7 +755,7 @@ def test_a_stop_signal_during_an_update_lands_after_its_log_row(clip_dir: Path, 
         return update(*args, **kwargs)
     monkeypatch.setattr(ppo, "ppo_update", update_then_signal)
     result = ppo.train(_tiny_config(clip_dir, tmp_path, num_envs=2, frames=10**6, checkpoint_every=100))
-    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    rows = _progress_rows(tmp_path / "progress.csv")
     # iteration 1 only initialises the observation statistics: the third update is iteration 4's
     assert result.interrupted and result.iteration == 4
     assert load_checkpoint(tmp_path)["iteration"] == int(rows[-1]["iteration"]) == 4
@@ -849,11 +853,12 @@ def test_training_scalars_reach_torchrl_loggers(clip_dir: Path, tmp_path: Path) 
 
     cfg = _tiny_config(clip_dir, tmp_path / "run", frames=2048, loggers=("csv", "tensorboard"))
     train(cfg)
-    rows = list(csv.DictReader(open(tmp_path / "run" / "progress.csv")))
+    rows = _progress_rows(tmp_path / "run" / "progress.csv")
     expected = [(int(r["frames"]), float(r["mean_return"])) for r in rows if r["mean_return"] not in ("", "nan")]
     assert expected
     (csv_file,) = (tmp_path / "run" / "trackers").rglob("mean_return.csv")
-    logged = [(int(step), float(value)) for step, value in csv.reader(open(csv_file))]
+    with open(csv_file, newline="") as f:
+        logged = [(int(step), float(value)) for step, value in csv.reader(f)]
     assert logged == pytest.approx(expected)
     (events,) = {p.parent for p in (tmp_path / "run" / "trackers").rglob("events.out.tfevents.*")}
     accumulator = EventAccumulator(str(events))
@@ -881,7 +886,7 @@ def test_collection_on_two_ray_workers_trains_with_their_frames(clip_dir: Path, 
                        minibatch_size=64, ray_workers=2)
     result = train(cfg)
     assert result.iteration == 4 and result.frames == 4 * 2 * 16 * 8
-    rows = list(csv.DictReader(open(tmp_path / "run" / "progress.csv")))
+    rows = _progress_rows(tmp_path / "run" / "progress.csv")
     assert all(int(b["frames"]) - int(a["frames"]) == 2 * 16 * 8 for a, b in zip(rows, rows[1:]))
     assert all(np.isfinite(float(r["loss_critic"])) for r in rows[1:])
     assert load_checkpoint(tmp_path / "run")["frames"] == result.frames
@@ -921,7 +926,7 @@ def test_collection_in_two_worker_processes(clip_dir: Path, tmp_path: Path) -> N
                        epochs=1, start_sampling="adaptive", collector_workers=2)
     runs = [train(cfg), train(replace(cfg, output=tmp_path / "b"))]
     assert [(r.iteration, r.frames) for r in runs] == [(5, 5 * 4 * 16)] * 2
-    logs = [list(csv.DictReader(open(tmp_path / name / "progress.csv"))) for name in "ab"]
+    logs = [_progress_rows(tmp_path / name / "progress.csv") for name in "ab"]
     for column in ("loss_objective", "loss_critic", "episodes", "mean_return", "start_failures/walk"):
         assert [r[column] for r in logs[0]] == [r[column] for r in logs[1]], column
     assert float(logs[0][-1]["start_failures/walk"]) > 0  # the untrained policy fails somewhere
@@ -929,7 +934,7 @@ def test_collection_in_two_worker_processes(clip_dir: Path, tmp_path: Path) -> N
     assert float(saved[0].sum()) == pytest.approx(float(logs[0][-1]["start_failures/walk"]))
     resumed = train(replace(cfg, frames=7 * 4 * 16, resume=True))
     assert (resumed.iteration, resumed.frames) == (7, 7 * 4 * 16)
-    assert all(np.isfinite(float(r["loss_critic"])) for r in list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))[1:])
+    assert all(np.isfinite(float(r["loss_critic"])) for r in _progress_rows(tmp_path / "a" / "progress.csv")[1:])
 
 
 def test_collector_workers_must_split_the_simulations_and_give_way_to_ray() -> None:
