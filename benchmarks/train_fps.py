@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 import tyro
 
-from crisp_gym.policy.networks import ModelConfig
+from crisp_gym.policy.model_config import ModelConfig
 from crisp_gym.registry import resolve_clip
 from crisp_gym.train.config import TrainConfig, cpu_profile, paper_profile
 from crisp_gym.train.ppo import make_env, train

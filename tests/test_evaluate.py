@@ -316,6 +316,35 @@ def test_ship_writes_policy_log_curve_and_evaluation(untrained_run: Path, clip_d
     np.testing.assert_array_equal(shipped["frames"], original["frames"])  # integers stay exact
 
 
+def test_a_long_log_ships_thinned_with_every_evaluation_and_the_same_run_clock(tmp_path: Path) -> None:
+    from crisp_gym.policy.files import run_wall_time
+    from crisp_gym.train.ship import read_progress, thin_progress, write_progress
+
+    rows = 10_007  # two segments: a run stopped after 6,002 iterations (not a multiple of the stride) and resumed
+    time_s = np.r_[np.arange(6002) * 0.5 + 3.0, np.arange(4005) * 0.25 + 7.0]
+    evaluated = np.arange(rows) % 100 == 37
+    log = {"iteration": np.arange(rows, dtype=float), "frames": np.arange(1, rows + 1) * 1024.0, "time_s": time_s,
+           "success_rate": np.random.default_rng(0).random(rows),
+           "eval_success/walk": np.where(evaluated, 0.5, np.nan), "confirm_success/walk": np.full(rows, np.nan)}
+    log["confirm_success/walk"][-3] = 0.9
+    write_progress(log, tmp_path / "whole.csv")
+
+    thin = thin_progress(read_progress(tmp_path / "whole.csv"), 2000)
+    assert list(thin) == list(log)
+    assert 1000 < len(thin["frames"]) <= 2000 + evaluated.sum() + 4  # evenly spaced, at most 2000, + evaluations
+    kept = thin["iteration"].astype(int)
+    assert np.all(np.diff(kept) > 0) and kept[0] == 0 and kept[-1] == rows - 1
+    assert np.diff(kept).max() <= 6  # evenly spaced: at most every 6th iteration missing
+    assert set(np.flatnonzero(evaluated)) <= set(kept) and rows - 3 in kept
+    for key in log:  # the rows kept are the log's own rows
+        np.testing.assert_allclose(thin[key], log[key][kept], rtol=1e-5, equal_nan=True)
+    write_progress(thin, tmp_path / "thin.csv")
+    assert run_wall_time(tmp_path / "thin.csv") == pytest.approx(run_wall_time(tmp_path / "whole.csv"))
+    assert run_wall_time(tmp_path / "whole.csv") == pytest.approx(6001 * 0.5 + 3.0 + 4004 * 0.25 + 7.0)
+    short = {key: column[:500] for key, column in log.items()}
+    assert thin_progress(short, 2000) is short and thin_progress(log, 0) is log
+
+
 def test_join_videos_plays_the_clips_in_order_with_captions(tmp_path: Path) -> None:
     import imageio.v2 as imageio
 

@@ -376,7 +376,8 @@ def test_motion_readers_reject_other_files(exported, tmp_path: Path) -> None:
 
 
 def _tiny_actor(kind: str, scene_aware: bool, num_future: int = 5, points: str = "pointnet"):
-    from crisp_gym.policy.networks import FixedStdGaussian, MLPActor, ModelConfig, ObsNormalizer, TransformerActor
+    from crisp_gym.policy.model_config import ModelConfig
+    from crisp_gym.policy.networks import FixedStdGaussian, MLPActor, ObsNormalizer, TransformerActor
 
     torch.manual_seed(0)
     config = ModelConfig(actor=kind, latent_dim=32, ff_dim=64, num_layers=1, num_heads=2, pointnet_hidden=(16, 32),
@@ -452,7 +453,7 @@ def test_policy_layout_describes_the_env_observation() -> None:
 def test_cli_exports_a_checkpoint(tmp_path: Path) -> None:
     """The exported policy computes what the checkpoint's actor does, and its JSON says how its
     actions become PD targets (here with the velocity feedforward it was trained with)."""
-    from crisp_gym.policy.networks import ModelConfig
+    from crisp_gym.policy.model_config import ModelConfig
     from crisp_gym.train.checkpoints import load_policy, save_checkpoint
     from crisp_gym.train.config import cpu_profile
     from crisp_gym.train.ppo import build_agent

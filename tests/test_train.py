@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,13 +18,13 @@ import numpy as np
 import pytest
 import torch
 
+from crisp_gym.policy.model_config import ModelConfig
 from crisp_gym.policy.networks import (
     ACTION_DIM,
     PROPRIO_DIM,
     TARGET_DIM,
     Critic,
     FixedStdGaussian,
-    ModelConfig,
     ObsNormalizer,
     RunningMeanStd,
     TransformerActor,
@@ -480,6 +482,31 @@ def test_bfloat16_only_where_the_cpu_multiplies_it_natively(clip_dir: Path, tmp_
     monkeypatch.setattr(ppo, "native_bfloat16", lambda: False)
     with pytest.warns(UserWarning, match="emulates"):
         ppo.train(_tiny_config(clip_dir, tmp_path, precision="bfloat16", frames=0))
+
+
+def test_cpu_flags_answer_as_torchs_own_probes(tmp_path: Path) -> None:
+    from crisp_gym.train.cli import cuda_available
+    from crisp_gym.train.config import linux_cpu_flags, native_bfloat16
+
+    (tmp_path / "cpuinfo").write_text("processor\t: 0\nflags\t\t: fpu sse2 avx512_bf16\n\nprocessor\t: 1\n"
+                                      "flags\t\t: fpu\n")
+    assert linux_cpu_flags(tmp_path / "cpuinfo") == {"fpu", "sse2", "avx512_bf16"}
+    assert linux_cpu_flags(tmp_path / "missing") is None
+    probes = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+    assert native_bfloat16() == probes
+    assert cuda_available() == torch.cuda.is_available()
+
+
+def test_train_help_does_not_import_torch() -> None:
+    from crisp_gym.train.cli import cuda_available
+
+    if cuda_available() or sys.platform != "linux":
+        pytest.skip("asking CUDA for the 'auto' profile needs torch here")
+    code = ("import sys\nfrom crisp_gym import cli\ntry:\n    cli.main(['train', '--help'])\nexcept SystemExit:\n"
+            "    pass\nprint('torch' in sys.modules, 'mujoco' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "--model.action-std" in out  # the whole help, profile defaults included
+    assert out.split()[-2:] == ["False", "False"]
 
 
 def test_cli(clip_dir: Path, tmp_path: Path) -> None:

@@ -3,11 +3,24 @@
 from __future__ import annotations
 
 import argparse
+import glob
+import os
+import sys
 
-import torch
 import tyro
 
 from crisp_gym.train.config import PROFILES, TrainConfig
+
+
+def cuda_available() -> bool:
+    """Whether torch sees a CUDA device. Without an NVIDIA device node (``/dev/nvidia0``, or WSL's
+    ``/dev/dxg``) Linux has none, and importing torch only to be told so costs seconds that
+    ``--help`` and a mistyped flag would wait for."""
+    if sys.platform == "linux" and not (glob.glob("/dev/nvidia[0-9]*") or os.path.exists("/dev/dxg")):
+        return False
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     known, rest = pre.parse_known_args(argv)
     profile = known.profile
     if profile == "auto":
-        profile = "paper" if torch.cuda.is_available() else "cpu"
+        profile = "paper" if cuda_available() else "cpu"
     cfg = tyro.cli(TrainConfig, args=rest, default=PROFILES[profile](), prog="crisp train",
                    description=f"Train a tracking policy with PPO (defaults: the {profile!r} profile; "
                                f"--profile {{auto,paper,cpu}} picks another).")

@@ -13,11 +13,9 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Annotated, Any
 
-import torch
 import tyro
 
-from crisp_gym.policy.files import model_config
-from crisp_gym.policy.networks import ModelConfig
+from crisp_gym.policy.model_config import ModelConfig, model_config
 
 PRECISIONS = ("float32", "bfloat16")
 """What ``TrainConfig.precision`` may name."""
@@ -218,9 +216,30 @@ def available_cpus() -> int:
 
 def native_bfloat16() -> bool:
     """Whether this CPU multiplies bfloat16 matrices natively (AVX512-BF16 or AMX); elsewhere
-    torch emulates them, slower than float32."""
+    torch emulates them, slower than float32.
+
+    On Linux the kernel's CPU flags tell (the CPU profile's defaults, and so ``crisp train
+    --help``, need not import torch for them); elsewhere torch's own probes do.
+    """
+    flags = linux_cpu_flags()
+    if flags is not None:
+        return bool(flags & {"avx512_bf16", "amx_tile"})
+    import torch
+
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own probes
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def linux_cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> set[str] | None:
+    """The CPU feature flags the Linux kernel lists for the first CPU (``None`` without the file)."""
+    try:
+        with open(cpuinfo) as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.partition(":")[2].split())
+    except OSError:
+        return None
+    return set()
 
 
 def paper_profile(**overrides: Any) -> TrainConfig:

@@ -56,7 +56,8 @@ from tqdm.auto import tqdm
 
 from crisp_gym.atomic import write_text
 from crisp_gym.policy.files import BEST_NAME, CHECKPOINT_NAME, load_checkpoint, read_policy_source
-from crisp_gym.policy.networks import Critic, FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
+from crisp_gym.policy.model_config import ModelConfig
+from crisp_gym.policy.networks import Critic, FixedStdGaussian, ObsNormalizer, build_actor
 from crisp_gym.train.checkpoints import (check_resumable, evaluation_meets, evaluation_score, evaluation_score_of,
                                          save_checkpoint)
 from crisp_gym.train.config import TrainConfig, config_from_dict, config_to_dict, native_bfloat16

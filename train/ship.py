@@ -6,7 +6,9 @@ writes into ``-o``:
 
 * ``policy.pt``: the actor (state dict, normaliser statistics, config, training totals; see
   :func:`crisp_gym.policy.files.write_policy_file`), what ``crisp demo`` and ``crisp eval`` load;
-* ``progress.csv``: the run's training log (6 significant digits);
+* ``progress.csv``: the run's training log (6 significant digits), thinned to at most
+  ``max_log_rows`` evenly spaced rows plus the evaluations (:func:`thin_progress`; the learning
+  curve is drawn from the whole log);
 * ``learning_curve.png``: success rate and mean return of the episodes that ended in each
   iteration, against training frames;
 * ``evaluation.png``: the run's periodic deterministic evaluations per clip, when it made any;
@@ -17,6 +19,7 @@ writes into ``-o``:
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -42,6 +45,8 @@ class ShipArgs:
             --init-from continues with both networks warm).
         episodes: RSI episodes of the evaluation.
         smooth: iterations in the learning curve's moving average.
+        max_log_rows: the shipped progress.csv keeps at most this many evenly spaced
+            iterations of a longer log, and every iteration with an evaluation (0: the whole log).
     """
 
     run: tyro.conf.Positional[Path]
@@ -51,6 +56,7 @@ class ShipArgs:
     with_critic: bool = False
     episodes: int = 100
     smooth: int = 50
+    max_log_rows: int = 2000
 
 
 def read_progress(path: str | Path) -> dict[str, np.ndarray]:
@@ -75,6 +81,25 @@ def write_progress(progress: dict[str, np.ndarray], path: Path) -> None:
         writer.writerow(keys)
         for row in zip(*(progress[k] for k in keys)):
             writer.writerow(["" if np.isnan(v) else str(int(v)) if v == int(v) else f"{v:.6g}" for v in row])
+
+
+def thin_progress(progress: dict[str, np.ndarray], max_rows: int) -> dict[str, np.ndarray]:
+    """The rows of a training log worth shipping: every ``ceil(rows / max_rows)``-th row, the
+    last one, every row with a periodic evaluation (``eval_*``, ``confirm_*`` columns) and the
+    rows on either side of a resumed segment's restart of ``time_s``, so that the run's clock
+    (:func:`crisp_gym.policy.files.run_clock`) reads the same total. ``max_rows`` 0 keeps all."""
+    rows = len(progress["frames"])
+    if max_rows <= 0 or rows <= max_rows:
+        return progress
+    keep = np.zeros(rows, dtype=bool)
+    keep[::math.ceil(rows / max_rows)] = True
+    keep[-1] = True
+    for key, column in progress.items():
+        if key.startswith(("eval_", "confirm_")):
+            keep |= np.isfinite(column)
+    restarts = np.flatnonzero(np.diff(progress["time_s"]) < 0)
+    keep[restarts] = keep[restarts + 1] = True
+    return {key: column[keep] for key, column in progress.items()}
 
 
 def _moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -124,7 +149,7 @@ def ship(args: ShipArgs) -> dict:
     progress = read_progress(progress_path)
     source = Path(args.run) / BEST_NAME if args.best else Path(args.run)
     policy = write_policy_file(source, args.output, clip=args.clip, with_critic=args.with_critic)
-    write_progress(progress, args.output / "progress.csv")
+    write_progress(thin_progress(progress, args.max_log_rows), args.output / "progress.csv")
     actor, cfg = load_policy(policy)
     clips = policy_clips(cfg.clip)
     plot_learning_curve(progress, args.output / "learning_curve.png", f"{', '.join(clips)}: PPO", args.smooth)
@@ -132,9 +157,9 @@ def ship(args: ShipArgs) -> dict:
         shutil.copyfile(Path(args.run) / "evaluation.png", args.output / "evaluation.png")
     reports = {}
     for clip in clips:
-        reports[Path(clip).name], _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), clip, episodes=args.episodes,
-                                           scene_aware=cfg.scene_aware,
-                                           velocity_feedforward=cfg.velocity_feedforward)
+        reports[Path(clip).name], _ = evaluate_policy(torch_policy(actor, cfg.scene_aware), clip,
+                                                      episodes=args.episodes, scene_aware=cfg.scene_aware,
+                                                      velocity_feedforward=cfg.velocity_feedforward)
     report = {"policy": policy.name, "actor": cfg.model.actor, "scene_aware": cfg.scene_aware,
               "training": policy_training_stats(policy), "clips": reports}
     write_json(report, args.output / "eval.json")

@@ -21,7 +21,8 @@ import torch
 from crisp_gym.atomic import atomic_path
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.file_errors import reading
-from crisp_gym.policy.networks import FixedStdGaussian, ModelConfig, ObsNormalizer, build_actor
+from crisp_gym.policy.model_config import ModelConfig, model_config
+from crisp_gym.policy.networks import FixedStdGaussian, ObsNormalizer, build_actor
 from crisp_gym.torch_file import load_tensors
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -93,11 +94,6 @@ class LoadedPolicy:
     def velocity_feedforward(self) -> bool:
         """The env option the policy was trained with (files from before it existed: off)."""
         return bool(self.config.get("velocity_feedforward", False))
-
-
-def model_config(config: dict[str, Any]) -> ModelConfig:
-    """The :class:`ModelConfig` of a saved training config (JSON keeps tuples as lists)."""
-    return ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config["model"].items()})
 
 
 def _num_points(actor_state: dict[str, torch.Tensor], config: dict[str, Any]) -> int:
