@@ -22,8 +22,8 @@ class ModelConfig:
         num_heads: self-attention heads.
         num_point_tokens: tokens the point feature is projected to (scene-aware only).
         point_encoder: how a scene-aware actor encodes the points: "pointnet" (the paper's) or
-            "flat" (:class:`~crisp_gym.policy.networks.FlatPoints`: one linear layer over the points nearest first, a
-            fraction of a PointNet's cost in the PPO update).
+            "flat" (FlatPoints in crisp_gym.policy.networks: one linear layer over the points
+            nearest first, a fraction of a PointNet's cost in the PPO update).
         pointnet_hidden: widths of the PointNet's shared per-point MLP (the last one is the
             pooled feature size, also the flat encoder's feature size).
         mlp_actor_hidden: hidden sizes of the MLP actor.
