@@ -45,9 +45,8 @@ Proposal = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 @dataclass(frozen=True)
 class SearchConfig:
-    """Knobs of :func:`search_clip`. The defaults found whole trajectories of ``flat_walk`` and of
-    the captured ``cmu_131_01`` from frame 0 (``docs/training.md``); smaller populations stall
-    earlier.
+    """Knobs of the search (search_clip). The defaults found whole trajectories of flat_walk and
+    of the captured cmu_131_01 from frame 0 (docs/training.md); smaller populations stall earlier.
 
     Attributes:
         population: simulations stepped per round (the batch size).
