@@ -3,12 +3,14 @@
 Subcommand modules are imported only when run, so ``crisp --help`` and light commands do
 not pay for torch or open3d. A user error (a bad value, a missing or unreadable file, an output
 that exists) ends any subcommand with one line naming it and exit status 2; ``crisp --debug
-COMMAND ...`` shows the traceback instead.
+COMMAND ...`` shows the traceback instead. Output piped into a reader that leaves early
+(``crisp train --help | head``) ends quietly, with exit status 1.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -57,11 +59,17 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[name][0])
     try:
         result = module.main(rest)
+        sys.stdout.flush()
     except USER_ERRORS as err:
         if debug:
             raise
         print(f"crisp {name}: {err}\n(crisp --debug {name} ... shows the traceback)", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader of the output left (`crisp train --help | head`): stop quietly, as Unix tools
+        # do, and point stdout at /dev/null so that the interpreter's last flush does not fail too.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     return int(result or 0)
 
 

@@ -43,6 +43,22 @@ def test_unknown_command_and_help(capsys):
     assert cli.main(["--help"]) == 0 and "--debug" in capsys.readouterr().out
 
 
+def test_help_into_a_closed_pipe_ends_quietly():
+    """`crisp train --help | head -1`: the reader leaves early; no traceback, no "Exception ignored"."""
+    import os
+    import subprocess
+    import sys
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # every write to the pipe now fails with EPIPE, as after `head` exits
+    try:
+        done = subprocess.run([sys.executable, "-m", "crisp_gym.cli", "train", "--help"], stdout=write_end,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert done.returncode == 1 and done.stderr == ""
+
+
 def test_unreadable_policy_files_are_named(tmp_path, capsys):
     """A garbage file and a truncated real policy: one line naming the file, no traceback."""
     from pathlib import Path
