@@ -7,6 +7,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
+from threadpoolctl import ThreadpoolController, threadpool_limits
 
 import crisp_gym  # noqa: F401
 from crisp_gym.envs.track import CrispTrackEnv
@@ -172,6 +173,28 @@ def test_make_vec_and_same_step_autoreset(sway_clip):
     # the returned observation already belongs to the next episode
     assert not np.allclose(obs["targets"], np.stack([o["targets"] for o in info["final_obs"]]))
     assert np.all(venv._frame < num_frames - 1)
+
+
+def test_the_envs_numpy_work_runs_on_one_blas_thread_and_the_callers_setting_stays(sway_clip, monkeypatch):
+    # OpenBLAS's workers spin after a threaded product and take cores from MuJoCo's threads.
+    blas = ThreadpoolController().select(user_api="blas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy runs on no BLAS library that threadpoolctl can see")
+    venv = CrispTrackVectorEnv(4, clip=str(sway_clip))
+    observe, seen = venv.task.observe, []
+
+    def observe_and_count_threads(*args):
+        seen.append({lib["num_threads"] for lib in blas.info()})
+        return observe(*args)
+
+    monkeypatch.setattr(venv.task, "observe", observe_and_count_threads)
+    with threadpool_limits(limits=2, user_api="blas"):
+        venv.reset(seed=0)
+        venv.step(np.zeros((4, 69)))
+        venv.restore(venv.snapshot())
+        after = {lib["num_threads"] for lib in blas.info()}
+    assert len(seen) >= 3 and all(threads == {1} for threads in seen)
+    assert after == {2}
 
 
 def test_bad_arguments_get_clear_errors(sway_clip):

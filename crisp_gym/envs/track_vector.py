@@ -25,6 +25,7 @@ import mujoco.batch
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
+from threadpoolctl import ThreadpoolController
 
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.library import ClipSource
@@ -136,6 +137,10 @@ class CrispTrackVectorEnv(VectorEnv):
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode, "render_fps": self.config.control_hz}
         self._needs_reset = np.zeros(num_envs, dtype=bool)  # NEXT_STEP: finished on the previous step
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
+        # The env's numpy products run on one BLAS thread: after a threaded product OpenBLAS's
+        # idle workers keep spinning and take cores from the MuJoCo threads stepping next
+        # (docs/benchmarks.md: 35-45 % more env steps/s on 2 cores).
+        self._blas = ThreadpoolController().select(user_api="blas")
         self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS + _RESET_FIELDS}
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
@@ -200,6 +205,10 @@ class CrispTrackVectorEnv(VectorEnv):
         One state may go to several simulations (a search branching from it). The start sampler's
         counts are not touched: episodes restored this way are not the sampler's draws.
         """
+        with self._blas.limit(limits=1):
+            return self._restore(snapshot, rows)
+
+    def _restore(self, snapshot: EnvSnapshot, rows: np.ndarray | None) -> dict[str, np.ndarray]:
         rows = np.arange(self.num_envs) if rows is None else np.asarray(rows, dtype=int)
         if rows.shape != (self.num_envs,) or rows.min() < 0 or rows.max() >= len(snapshot):
             raise ValueError(f"rows must give one of the snapshot's {len(snapshot)} states to each of the "
@@ -213,6 +222,10 @@ class CrispTrackVectorEnv(VectorEnv):
         return self.task.observe(self._state(), self._clip, self._frame)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
+        with self._blas.limit(limits=1):
+            return self._reset(seed, options)
+
+    def _reset(self, seed: int | list[int] | None, options: dict | None):
         super().reset(seed=seed)
         options = options or {}
         forced = None
@@ -239,7 +252,8 @@ class CrispTrackVectorEnv(VectorEnv):
                      "unstable": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
-        result = self._step(actions)
+        with self._blas.limit(limits=1):
+            result = self._step(actions)
         if self.render_mode == "human":
             self.render()
         return result
