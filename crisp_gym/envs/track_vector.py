@@ -139,7 +139,7 @@ class CrispTrackVectorEnv(VectorEnv):
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
         # The env's numpy products run on one BLAS thread: after a threaded product OpenBLAS's
         # idle workers keep spinning and take cores from the MuJoCo threads stepping next
-        # (docs/benchmarks.md: 35-45 % more env steps/s on 2 cores).
+        # (docs/benchmarks.md: 1.5x the env steps/s on a 2-core machine).
         self._blas = ThreadpoolController().select(user_api="blas")
         self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS + _RESET_FIELDS}
         self.single_observation_space = self.task.observation_space()
