@@ -16,7 +16,8 @@ reward 0, neither terminated nor truncated).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +41,21 @@ _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com",
 # composed models have no plugins).
 _RESET_FIELDS = ("time", "act", "qacc_warmstart", "qfrc_applied", "xfrc_applied")
 _SNAPSHOT_FIELDS = ("qpos", "qvel", "ctrl", *_RESET_FIELDS)  # what the next step depends on
+
+
+def _on_one_blas_thread(method: Callable) -> Callable:
+    """Run an env method with numpy's BLAS on one thread (the caller's setting back afterwards).
+
+    After a threaded product OpenBLAS's idle workers keep spinning and take cores from the MuJoCo
+    threads stepping next (docs/benchmarks.md: 1.5x the env steps/s on a 2-core machine).
+    """
+
+    @functools.wraps(method)
+    def limited(self: CrispTrackVectorEnv, *args: Any, **kwargs: Any) -> Any:
+        with self._blas.limit(limits=1):
+            return method(self, *args, **kwargs)
+
+    return limited
 
 
 @dataclass(frozen=True)
@@ -137,10 +153,7 @@ class CrispTrackVectorEnv(VectorEnv):
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode, "render_fps": self.config.control_hz}
         self._needs_reset = np.zeros(num_envs, dtype=bool)  # NEXT_STEP: finished on the previous step
         self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=num_threads, persistent=True)
-        # The env's numpy products run on one BLAS thread: after a threaded product OpenBLAS's
-        # idle workers keep spinning and take cores from the MuJoCo threads stepping next
-        # (docs/benchmarks.md: 1.5x the env steps/s on a 2-core machine).
-        self._blas = ThreadpoolController().select(user_api="blas")
+        self._blas = ThreadpoolController().select(user_api="blas")  # see _on_one_blas_thread
         self._fields = {name: self.batch.bind(name) for name in _BOUND_FIELDS + _RESET_FIELDS}
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
@@ -198,6 +211,7 @@ class CrispTrackVectorEnv(VectorEnv):
         return EnvSnapshot({name: self._fields[name][ids].copy() for name in _SNAPSHOT_FIELDS},
                            self._clip[ids].copy(), self._frame[ids].copy(), self._start_frame[ids].copy())
 
+    @_on_one_blas_thread
     def restore(self, snapshot: EnvSnapshot, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Simulation ``i`` continues from row ``rows[i]`` of ``snapshot`` (default: row ``i``),
         exactly as the simulation it was taken from would have; returns the observations.
@@ -205,10 +219,6 @@ class CrispTrackVectorEnv(VectorEnv):
         One state may go to several simulations (a search branching from it). The start sampler's
         counts are not touched: episodes restored this way are not the sampler's draws.
         """
-        with self._blas.limit(limits=1):
-            return self._restore(snapshot, rows)
-
-    def _restore(self, snapshot: EnvSnapshot, rows: np.ndarray | None) -> dict[str, np.ndarray]:
         rows = np.arange(self.num_envs) if rows is None else np.asarray(rows, dtype=int)
         if rows.shape != (self.num_envs,) or rows.min() < 0 or rows.max() >= len(snapshot):
             raise ValueError(f"rows must give one of the snapshot's {len(snapshot)} states to each of the "
@@ -221,11 +231,8 @@ class CrispTrackVectorEnv(VectorEnv):
         self._forward(self._all)
         return self.task.observe(self._state(), self._clip, self._frame)
 
+    @_on_one_blas_thread
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
-        with self._blas.limit(limits=1):
-            return self._reset(seed, options)
-
-    def _reset(self, seed: int | list[int] | None, options: dict | None):
         super().reset(seed=seed)
         options = options or {}
         forced = None
@@ -252,12 +259,12 @@ class CrispTrackVectorEnv(VectorEnv):
                      "unstable": np.zeros(self.num_envs, dtype=bool)}
 
     def step(self, actions):
-        with self._blas.limit(limits=1):
-            result = self._step(actions)
+        result = self._step(actions)
         if self.render_mode == "human":
             self.render()
         return result
 
+    @_on_one_blas_thread
     def _step(self, actions):
         # NEXT_STEP: a simulation reset by this step does not advance past its clip's end.
         next_frame = self._frame + ~self._needs_reset
