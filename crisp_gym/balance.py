@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from crisp_gym.humanoid import BODY_NAMES, FEET, HumanoidConfig, build_humanoid
-from crisp_gym.motion import Motion
+from crisp_gym.motion import PLANT_TOLERANCE, Motion, lower_feet, side_sole_heights
 
 GRAVITY = 9.81
 
@@ -172,6 +172,43 @@ def followability(motion: Motion, margin: float = 0.10, min_support: float = 0.5
     return Followability(outside=float(unbalanced[judged].mean()) if judged.any() else 0.0,
                          unsupported=float(unsupported.mean()), spans=_spans(unbalanced | unsupported, bridge, min_span),
                          margin=margin, min_support=min_support)
+
+
+def plant_supporting_feet(motion: Motion, model: mujoco.MjModel | None = None, min_support: float = 0.5,
+                          near: float = 0.10, reach: float = 0.10, blend: float = 0.1, floor: float = 0.0) -> Motion:
+    """``motion`` with the feet it stands on put on the floor (at height ``floor``): in every frame
+    where the ground must carry more than ``min_support`` body weights, the foot nearest the centre
+    of pressure the motion needs is lowered onto the floor if it hovers less than ``reach`` m above
+    it, by bending its leg (:func:`crisp_gym.motion.lower_feet`, fading over ``blend`` seconds).
+    A sole carries a centre of pressure up to ``near`` m outside it (the margin :func:`followability`
+    allows); one farther from either sole but within ``near`` of their joint support polygon needs
+    both feet. A foot in the air that carries nothing keeps its height, and so does the pelvis.
+
+    A capture retargeted onto another body's legs lands late or hovers where the person stood:
+    CMU 131_01's side lunge (frames 86-91) asks the ground for 1.0-1.5 body weights under the right
+    foot while that sole is still 4-6 cm up, so a simulated body cannot stop its sideways fall
+    where the reference does. As :func:`crisp_gym.motion.plant_feet` does, a foot within
+    ``PLANT_TOLERANCE`` (2 mm) of the floor counts as on it, and a lowered one stops there.
+    """
+    model = build_humanoid(HumanoidConfig()) if model is None else model
+    data = mujoco.MjData(model)
+    motion = motion.in_humanoid_order()
+    balance = motion_balance(replace(motion, contacts=None))  # every foot counted as touching
+    sole = side_sole_heights(motion, model)
+    soles = _sole_boxes(model)
+    sides = [[BODY_NAMES.index(b) for b in FEET[:2]], [BODY_NAMES.index(b) for b in FEET[2:]]]
+    qpos = motion.qpos()
+    stands = np.zeros((motion.num_frames, 2), dtype=bool)
+    for k in np.flatnonzero((balance.vertical_force > min_support) & np.isfinite(balance.cop).all(axis=1)):
+        data.qpos[:] = qpos[k]
+        mujoco.mj_kinematics(model, data)
+        corners = [np.concatenate([_sole_corners(model, data, soles[i]) for i in side])[:, :2] for side in sides]
+        outside = [distance_outside_hull(c, balance.cop[k]) for c in corners]
+        nearest = int(np.argmin(outside))
+        between = outside[nearest] >= near and distance_outside_hull(np.concatenate(corners), balance.cop[k]) < near
+        for i in ((0, 1) if between else (nearest,)):
+            stands[k, i] = floor + PLANT_TOLERANCE < sole[k, i] < floor + reach
+    return lower_feet(motion, model, stands, floor + PLANT_TOLERANCE - sole, blend, floor, sole)
 
 
 def _feet_on_floor(motion: Motion, floor: float, touch: float) -> np.ndarray:

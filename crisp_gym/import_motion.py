@@ -26,7 +26,9 @@ SMPL-family files is detected unless given (:func:`crisp_gym.bvh.detect_up_axis`
 its planted feet (:func:`crisp_gym.motion.ground_stance`; captures also get their planted feet
 laid flat, :func:`crisp_gym.motion.level_feet`; with ``--plant-feet`` a planted foot left above
 the floor is also brought down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`),
-or by one offset with ``--grounding constant``.
+or by one offset with ``--grounding constant``. With ``--plant-support`` a foot that hovers where
+the motion's centre of pressure needs it on the floor is put there too
+(:func:`crisp_gym.balance.plant_supporting_feet`).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ import numpy as np
 import tyro
 from tqdm.auto import tqdm
 
-from crisp_gym.balance import Followability, followability
+from crisp_gym.balance import Followability, followability, plant_supporting_feet
 from crisp_gym.clip import write_clip
 from crisp_gym.file_errors import reading
 from crisp_gym.humanoid import build_humanoid
@@ -82,6 +84,10 @@ class ImportMotionArgs:
     plant_feet: bool = False
     """With stance grounding, bend a leg whose planted foot stands above the floor (and above the
     other planted foot) until it stands on it (off by default: the legs as read track as well)."""
+    plant_support: bool = False
+    """Where the ground must carry the body, stand the foot (or feet) its centre of pressure calls
+    for on the floor when it hovers less than 10 cm above it (a capture's late landing or sliding
+    foot; crisp_gym.balance.plant_supporting_feet)."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
@@ -167,9 +173,10 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
 
 def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, up_axis: str = "auto",
                 grounding: str = "stance", model: mujoco.MjModel | None = None,
-                plant_feet: bool = False) -> ReadMotion:
+                plant_feet: bool = False, plant_support: bool = False) -> ReadMotion:
     """Load any supported motion file (module docstring) as a grounded :class:`Motion` at ``fps``
-    (``plant_feet``: see :attr:`crisp_gym.motion.StanceGrounding.plant`)."""
+    (``plant_feet``: see :attr:`crisp_gym.motion.StanceGrounding.plant`; ``plant_support``:
+    :func:`crisp_gym.balance.plant_supporting_feet`, after grounding)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no motion file at {path}")
@@ -201,6 +208,8 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
         grounded = ground(motion, model) if stance is None else ground_stance(motion, model, stance)
         offset = grounded.root_pos[:, 2] - motion.root_pos[:, 2]
         motion = grounded
+    if plant_support:
+        motion = plant_supporting_feet(motion, model)
     return ReadMotion(motion, fmt, rate, axis, (float(offset.min()), float(offset.max())))
 
 
@@ -213,11 +222,13 @@ def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
                 model: mujoco.MjModel) -> tuple[ReadMotion, Followability]:
     """Read ``file``, write it as clip ``name`` at ``output`` and register it; also say where
     its body cannot balance on its feet (``meta.json``'s ``followability``)."""
-    read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model, args.plant_feet)
+    read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model, args.plant_feet,
+                       args.plant_support)
     follow = followability(read.motion)
     meta = {"name": name, "source": "import-motion", "input": str(file.resolve()), "fps": read.motion.fps,
             "source_format": read.source_format, "source_fps": read.source_fps, "up_axis": read.up_axis,
-            "grounding": args.grounding, "plant_feet": args.plant_feet, "followability": follow.to_json()}
+            "grounding": args.grounding, "plant_feet": args.plant_feet,
+            "plant_support": args.plant_support, "followability": follow.to_json()}
     write_clip(output, [floor_box()], read.motion, meta, overwrite=args.overwrite)
     register_clip(name, output, tags=["imported", "flat"])
     return read, follow

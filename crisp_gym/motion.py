@@ -46,7 +46,7 @@ _STANCE_WINDOW = 0.5  # s each side: how far around a frame a planted foot's low
 _STANCE_LIFT = 0.05  # m: a still foot this far above that height is in the air, not planted
 _PLANT_HINGES = ("Hip_x", "Hip_y", "Knee_y")  # three hinges for the foot's three coordinates: no twist
 _PLANT_MAX_STEP = 0.05  # rad: a step's largest hinge change, where the leg's linearisation holds
-_PLANT_TOLERANCE = 2e-3  # m: a planted foot this close above its level stands on it (grounding's own error: < 1 mm)
+PLANT_TOLERANCE = 2e-3  # m: a planted foot this close above its level stands on it (grounding's own error: < 1 mm)
 _PLANT_ITERATIONS = 12
 _PLANT_DAMPING = 1e-3  # m: damped least squares, for a leg near full stretch
 
@@ -562,26 +562,43 @@ def plant_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = 
     planted = planted_feet(motion, model, config.stance_speed)
     sole = side_sole_heights(motion, model)
     frames = np.arange(motion.num_frames)
-    blend = max(config.plant_blend * motion.fps, 1.0)
-    drop = np.zeros((motion.num_frames, 2))  # how far each foot comes down (<= 0)
+    drop = np.zeros((motion.num_frames, 2))  # per stance, how far each foot comes down (<= 0)
     for i, on in enumerate(planted.T):
-        if not on.any():
-            continue
         # as low as the floor, not below the other foot where that one stands too
         level = np.where(planted[:, 1 - i], np.maximum(floor_height, sole[:, 1 - i]), floor_height)
         # One drop per stance, by its lowest hover: a heel rising before toe-off keeps its rise.
-        stance_drop = np.zeros(motion.num_frames)
         for run in np.split(frames[on], np.flatnonzero(np.diff(frames[on]) > 1) + 1):
-            stance_drop[run] = min(np.min(level[run] + _PLANT_TOLERANCE - sole[run, i]), 0.0)
-        weight = np.clip(1.0 - distance_transform_edt(~on) / blend, 0.0, 1.0)
-        drop[:, i] = np.maximum(weight * np.interp(frames, frames[on], stance_drop[on]), floor_height - sole[:, i])
-        drop[:, i] = np.minimum(drop[:, i], 0.0)
-    if not np.any(drop < 0.0):
+            if len(run):
+                drop[run, i] = min(np.min(level[run] + PLANT_TOLERANCE - sole[run, i]), 0.0)
+    return lower_feet(motion, model, planted, drop, config.plant_blend, floor_height, sole)
+
+
+def lower_feet(motion: Motion, model: mujoco.MjModel, on: np.ndarray, drop: np.ndarray, blend: float,
+               floor_height: float = 0.0, sole: np.ndarray | None = None) -> Motion:
+    """The motion with foot ``i`` (0 left, 1 right) lowered by ``drop[k, i]`` m (<= 0) in the frames
+    where ``on[k, i]``, by bending its leg as :func:`plant_feet` does; ``drop`` elsewhere is ignored.
+
+    Around those frames the drop fades out linearly over ``blend`` seconds (interpolated between
+    them), so a foot lands and lifts off without a jump. No foot is taken below ``floor_height``
+    and the pelvis does not move. ``sole``: the (T, 2) :func:`side_sole_heights`, if already known.
+    """
+    motion = motion.in_humanoid_order()
+    sole = side_sole_heights(motion, model) if sole is None else sole
+    frames = np.arange(motion.num_frames)
+    blend_frames = max(blend * motion.fps, 1.0)
+    faded = np.zeros((motion.num_frames, 2))
+    for i, foot_on in enumerate(np.asarray(on, dtype=bool).T):
+        if not foot_on.any():
+            continue
+        weight = np.clip(1.0 - distance_transform_edt(~foot_on) / blend_frames, 0.0, 1.0)
+        faded[:, i] = np.maximum(weight * np.interp(frames, frames[foot_on], drop[foot_on, i]), floor_height - sole[:, i])
+    faded = np.minimum(faded, 0.0)
+    if not np.any(faded < 0.0):
         return motion
     leg = _LegSolver(model)
     qpos = motion.qpos()  # a fresh array: the rows are changed in place
-    for k, i in zip(*np.nonzero(drop < 0.0)):
-        leg.lower(qpos[k], "LR"[i], drop[k, i])
+    for k, i in zip(*np.nonzero(faded < 0.0)):
+        leg.lower(qpos[k], "LR"[i], faded[k, i])
     return replace(motion, dof_pos=qpos[:, 7:])
 
 

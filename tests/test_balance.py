@@ -1,15 +1,25 @@
 """Centre of pressure by inverse dynamics: statics, a known acceleration, and the synthetic clips;
-followability (where a motion asks more than feet can give) on motions with a known answer."""
+followability (where a motion asks more than feet can give) and standing a motion on its
+supporting feet, on motions with a known answer."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 
-from crisp_gym.balance import GRAVITY, _spans, distance_outside_hull, followability, motion_balance
+from crisp_gym.balance import (
+    GRAVITY,
+    _spans,
+    distance_outside_hull,
+    followability,
+    motion_balance,
+    plant_supporting_feet,
+)
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid
-from crisp_gym.motion import Motion
+from crisp_gym.motion import Motion, side_sole_heights
 from crisp_gym.synth.clips import KINDS, make_clip
 
 
@@ -145,3 +155,80 @@ def test_flagged_runs_join_across_short_gaps_and_short_runs_are_dropped():
     assert _spans(flags, bridge=2, min_span=3) == ((2, 8), (25, 28))
     assert _spans(flags, bridge=1, min_span=3) == ((2, 5), (25, 28))
     assert _spans(flags, bridge=6, min_span=1) == ((2, 8), (20, 28))
+
+
+def _crouched(frames: int, root_y: np.ndarray | None = None, lift: float = 0.3, spread: float = 0.0) -> Motion:
+    """Unlabelled: both legs folded by ``lift`` rad at hip and knee and back at the ankle (the feet
+    level, 3.7 cm up at 0.3 rad) and spread apart by ``spread`` rad each at the hip (the feet kept
+    level by the ankle), the pelvis at its rest height and moved sideways by ``root_y``."""
+    motion = _unlabelled(_standing(frames))
+    dof = motion.dof_pos.copy()
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        dof[:, DOF_NAMES.index(f"{side}_Hip_y")] = -lift
+        dof[:, DOF_NAMES.index(f"{side}_Knee_y")] = 2 * lift
+        dof[:, DOF_NAMES.index(f"{side}_Ankle_y")] = -lift
+        dof[:, DOF_NAMES.index(f"{side}_Hip_x")] = sign * spread
+        dof[:, DOF_NAMES.index(f"{side}_Ankle_x")] = -sign * spread
+    root = motion.root_pos.copy()
+    if root_y is not None:
+        root[:, 1] += root_y
+    return Motion(fps=motion.fps, root_pos=root, root_quat=motion.root_quat, dof_pos=dof)
+
+
+def test_a_body_held_up_on_hovering_feet_is_stood_on_them():
+    """Standing still, feet wide apart and 3-6 cm up: the ground must carry the whole weight with
+    its centre of pressure between the feet, more than 10 cm from either sole, so both come down
+    onto the floor by unbending the legs; the pelvis stays, and nothing is left unsupported."""
+    model = build_humanoid(HumanoidConfig())
+    wide = _crouched(30, spread=0.25)
+    # lowered by what spreading straight legs raises the feet: the folded legs can then reach the floor
+    rise = side_sole_heights(_crouched(2, lift=0.0, spread=0.25), model)[0, 0]
+    motion = Motion(fps=wide.fps, root_pos=wide.root_pos - [0.0, 0.0, rise], root_quat=wide.root_quat,
+                    dof_pos=wide.dof_pos)
+    sole = side_sole_heights(motion, model)
+    assert np.all((sole > 0.03) & (sole < 0.05)) and followability(motion).unsupported == 1.0
+    planted = plant_supporting_feet(motion, model)
+    after = side_sole_heights(planted, model)
+    assert np.all((after >= -1e-4) & (after <= 3e-3))  # as plant_feet, 2 mm count as on the floor
+    np.testing.assert_array_equal(planted.root_pos, motion.root_pos)
+    assert followability(planted).unsupported == 0.0
+    # out of reach (the same stance 20 cm higher) nothing is done
+    high = Motion(fps=motion.fps, root_pos=motion.root_pos + [0.0, 0.0, 0.2], root_quat=motion.root_quat,
+                  dof_pos=motion.dof_pos)
+    np.testing.assert_array_equal(plant_supporting_feet(high, model).dof_pos, high.dof_pos)
+
+
+def test_only_the_foot_under_the_centre_of_pressure_is_stood_on():
+    """Accelerating sideways at a = g d / z (d: the centre of mass's distance from the right
+    sole's centre, z its height) puts the centre of pressure under the right foot (see the rigid
+    acceleration test above): the right foot comes down, the left one carries nothing and keeps
+    its height."""
+    model = build_humanoid(HumanoidConfig())
+    still = _crouched(3)
+    com = _centre_of_mass(still, 1)
+    data = mujoco.MjData(model)
+    data.qpos[:] = still.qpos()[1]
+    mujoco.mj_kinematics(model, data)
+    right = data.xpos[[model.body("R_Ankle").id, model.body("R_Toe").id], 1].mean()
+    sole = side_sole_heights(still, model)[0]
+    a = GRAVITY * (com[1] - right) / (com[2] - sole.min())
+    t = np.arange(30) / 30.0
+    motion = _crouched(30, root_y=0.5 * a * t**2)
+    planted = plant_supporting_feet(motion, model)
+    before, after = side_sole_heights(motion, model), side_sole_heights(planted, model)
+    inner = slice(2, -2)  # the end frames' accelerations are not measured
+    assert np.all((after[inner, 1] >= -1e-4) & (after[inner, 1] <= 3e-3))
+    np.testing.assert_allclose(after[inner, 0], before[inner, 0], atol=1e-9)
+
+
+def test_a_walk_planned_on_its_feet_is_barely_changed():
+    """The bundled walk keeps its centre of pressure inside its planted feet: what standing on the
+    supporting feet changes is a swing foot's last centimetre at lift-off or touchdown. Nothing is
+    raised, nothing goes below the floor and the pelvis does not move."""
+    model = build_humanoid(HumanoidConfig())
+    walk = Motion.load(Path(__file__).parents[1] / "assets" / "clips" / "flat_walk" / "motion.npz")
+    planted = plant_supporting_feet(walk, model)
+    before, after = side_sole_heights(walk, model), side_sole_heights(planted, model)
+    assert np.all(after <= before + 1e-5) and np.all(after >= -1e-4)  # the leg solver's tolerance: 10 µm
+    assert np.abs(after - before).max() < 0.01
+    np.testing.assert_array_equal(planted.root_pos, walk.in_humanoid_order().root_pos)

@@ -355,3 +355,29 @@ def test_import_plants_a_hovering_foot_when_told_to(model, tmp_path):
     left = side_sole_heights(planted.motion, model)[:, 0]
     assert np.all((left > -1e-3) & (left < 3e-3))
     assert np.all(side_sole_heights(as_read.motion, model)[:, 0] > 0.03)
+
+
+def test_import_stands_the_foot_that_carries_the_body_on_the_floor_when_told_to(model, tmp_path):
+    """Crouched on both legs, the right one folded further (its foot ~4 cm above the left), while
+    the body accelerates towards its left at 1.1 m/s²: the centre of pressure then lies under the
+    right foot (height x acceleration / g, about 10 cm to the right of the centre of mass). The
+    import grounds the lower, left foot; with ``--plant-support`` the right foot is brought down onto
+    the floor, by default it stays up, and ``meta.json`` says which was done."""
+    frames = 45
+    dof = np.zeros((frames, len(DOF_NAMES)))
+    for side, lift in (("L", 0.3), ("R", 0.45)):
+        dof[:, DOF_NAMES.index(f"{side}_Hip_y")], dof[:, DOF_NAMES.index(f"{side}_Knee_y")] = -lift, 2 * lift
+        dof[:, DOF_NAMES.index(f"{side}_Ankle_y")] = -lift
+    t = np.arange(frames) / 30.0
+    root = np.stack([np.zeros(frames), 0.5 * 1.1 * t**2, np.full(frames, 0.9)], axis=1)
+    leaning = Motion(fps=30.0, root_pos=root, root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)
+    path = write_motion_npz(leaning, tmp_path / "lean.npz", "beyondmimic")
+    for name, flags in (("supported", ["--plant-support"]), ("as_read", [])):
+        assert cli.main(["import-motion", str(path), "--name", name, "-o", str(tmp_path / name), *flags]) == 0
+    supported, as_read = (load_clip(n) for n in ("supported", "as_read"))
+    assert supported.meta["plant_support"] is True and as_read.meta["plant_support"] is False
+    inner = slice(3, -3)  # away from the ends, whose accelerations are not measured
+    before, after = side_sole_heights(as_read.motion, model)[inner], side_sole_heights(supported.motion, model)[inner]
+    assert np.all(before[:, 0] < 3e-3) and np.all(before[:, 1] > 0.03)
+    assert np.all((after[:, 1] > -1e-3) & (after[:, 1] < 3e-3))
+    np.testing.assert_allclose(after[:, 0], before[:, 0], atol=1e-9)
