@@ -176,7 +176,7 @@ def _crouched(frames: int, root_y: np.ndarray | None = None, lift: float = 0.3, 
 
 
 def test_a_body_held_up_on_hovering_feet_is_stood_on_them():
-    """Standing still, feet wide apart and 3-6 cm up: the ground must carry the whole weight with
+    """Standing still, feet wide apart and 3-5 cm up: the ground must carry the whole weight with
     its centre of pressure between the feet, more than 10 cm from either sole, so both come down
     onto the floor by unbending the legs; the pelvis stays, and nothing is left unsupported."""
     model = build_humanoid(HumanoidConfig())
