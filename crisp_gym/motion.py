@@ -564,12 +564,13 @@ def plant_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = 
     frames = np.arange(motion.num_frames)
     drop = np.zeros((motion.num_frames, 2))  # per stance, how far each foot comes down (<= 0)
     for i, on in enumerate(planted.T):
+        if not on.any():
+            continue
         # as low as the floor, not below the other foot where that one stands too
         level = np.where(planted[:, 1 - i], np.maximum(floor_height, sole[:, 1 - i]), floor_height)
         # One drop per stance, by its lowest hover: a heel rising before toe-off keeps its rise.
         for run in np.split(frames[on], np.flatnonzero(np.diff(frames[on]) > 1) + 1):
-            if len(run):
-                drop[run, i] = min(np.min(level[run] + PLANT_TOLERANCE - sole[run, i]), 0.0)
+            drop[run, i] = min(np.min(level[run] + PLANT_TOLERANCE - sole[run, i]), 0.0)
     return lower_feet(motion, model, planted, drop, config.plant_blend, floor_height, sole)
 
 
