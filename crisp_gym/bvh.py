@@ -488,8 +488,8 @@ class BvhRetarget:
         unit_scale: metres per BVH unit used.
         joints: our body -> the BVH joint name that drives it.
         to_ours: (3, 3) rotation from the file's axes to ours.
-        clipped_fraction: share of hinge values moved into the humanoid's ranges.
-        max_clip_deg: the largest such move in degrees.
+        clipped_fraction: share of hinge values changed to fit the joints into the humanoid's ranges.
+        max_clip_deg: the largest turn of a joint that fitting into range caused, in degrees.
         ground_offset: (T,) metres added to each frame's root height to put the feet on the
             floor: a slowly varying correction where the capture's floor drifts, constant
             when grounded without ``grounding``.
@@ -519,8 +519,9 @@ def retarget_bvh(clip: BvhClip, *, unit_scale: float | None = None, up_axis: str
     planted feet flat (:func:`~crisp_gym.motion.level_feet`) and puts them on the floor frame by
     frame (motion capture floors drift by centimetres over a take, see
     :func:`~crisp_gym.motion.stance_floor`); ``None`` keeps the feet as retargeted and shifts the
-    whole motion by one offset instead (:func:`~crisp_gym.motion.ground`). Clipping into the
-    joint ranges comes after the feet are laid flat. ``low_pass_hz`` low-passes the elbows', wrists'
+    whole motion by one offset instead (:func:`~crisp_gym.motion.ground`). ``clip_to_range``
+    fits the joints into the humanoid's ranges after the feet are laid flat, keeping each foot where
+    it was (:func:`~crisp_gym.motion.fit_into_range`). ``low_pass_hz`` low-passes the elbows', wrists'
     and hands' hinge angles first (:data:`~crisp_gym.retarget.FLICKERING_BODIES`,
     :func:`~crisp_gym.motion.low_pass_joints`; ``None``: as captured).
     """

@@ -19,6 +19,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 from scipy.ndimage import distance_transform_edt, gaussian_filter1d, maximum_filter1d, minimum_filter1d
+from scipy.optimize import least_squares, minimize
 from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -45,10 +46,9 @@ _UNDERCUT_PASSES = 5
 _STANCE_WINDOW = 0.5  # s each side: how far around a frame a planted foot's lowest height is sought
 _STANCE_LIFT = 0.05  # m: a still foot this far above that height is in the air, not planted
 _PLANT_HINGES = ("Hip_x", "Hip_y", "Knee_y")  # three hinges for the foot's three coordinates: no twist
-_PLANT_MAX_STEP = 0.05  # rad: a step's largest hinge change, where the leg's linearisation holds
 PLANT_TOLERANCE = 2e-3  # m: a planted foot this close above its level stands on it (grounding's own error: < 1 mm)
-_PLANT_ITERATIONS = 12
-_PLANT_DAMPING = 1e-3  # m: damped least squares, for a leg near full stretch
+_REACH_REGULARISATION = 1e-3  # m per rad: among postures that reach alike, the nearest the given
+_RANGE_FIT_HINGES = ("Hip_x", "Hip_y", "Hip_z", "Knee_y")  # a leg put back after its joints were fitted into range
 
 
 def _as_names(names, expected_len: int, what: str) -> tuple[str, ...]:
@@ -336,6 +336,35 @@ def rotations_to_hinge_angles(rotations: np.ndarray, ranges: np.ndarray | None =
     return out
 
 
+def fit_hinges_into_range(angles: np.ndarray, ranges: np.ndarray, continuity: float = 1e-3) -> np.ndarray:
+    """(T, J, 3) hinge angles inside ``ranges`` ((J, 3, 2) radians) whose rotations are nearest
+    those of ``angles``: the joint's orientation is kept as well as its range allows.
+
+    Clipping each hinge on its own does not do that near ``b = ±90°`` (a hip flexed to the
+    horizontal, a foot rolled onto its edge), where only ``a ± c`` sets the rotation: a triple
+    with ``a`` and ``c`` both 80° outside can be the same rotation as one well inside, and
+    clipping both turns the joint by 90°. Each out-of-range joint is fitted by bounded least
+    squares on the rotation matrices' difference, from its clipped angles and from the previous
+    frame's answer; ``continuity`` weighs the squared distance from the previous frame, so that
+    among equally good fits the motion stays smooth.
+    """
+    angles = np.asarray(angles, dtype=float)
+    low, high = ranges[..., 0], ranges[..., 1]
+    fitted = np.clip(angles, low, high)
+    targets = hinge_angles_to_rotations(angles)
+    for k, j in zip(*np.nonzero(np.any(fitted != angles, axis=-1))):
+        previous = fitted[k - 1, j] if k > 0 else fitted[k, j]
+
+        def cost(x: np.ndarray, k: int = k, j: int = j, previous: np.ndarray = previous) -> float:
+            return float(np.sum((hinge_angles_to_rotations(x) - targets[k, j]) ** 2)
+                         + continuity * np.sum((x - previous) ** 2))
+
+        starts = (fitted[k, j], previous)
+        fits = [minimize(cost, s, method="L-BFGS-B", bounds=list(zip(low[j], high[j]))) for s in starts]
+        fitted[k, j] = min(fits, key=lambda f: f.fun).x
+    return fitted
+
+
 def hinge_angles_to_rotations(angles: np.ndarray) -> np.ndarray:
     """(..., 3, 3) local rotations for (..., 3) x-y-z hinge angles (inverse of the above)."""
     angles = np.asarray(angles, dtype=float)
@@ -574,6 +603,35 @@ def plant_feet(motion: Motion, model: mujoco.MjModel, config: StanceGrounding = 
     return lower_feet(motion, model, planted, drop, config.plant_blend, floor_height, sole)
 
 
+def fit_into_range(motion: Motion, model: mujoco.MjModel) -> Motion:
+    """``motion`` with every joint inside the humanoid's ranges and the feet where they were.
+
+    Each joint is first given the in-range orientation nearest its own
+    (:func:`fit_hinges_into_range`). A leg changed that way then has its ankle put back where it
+    was and its foot turned back, by :func:`plant_feet`'s leg solve (hip flexion and abduction,
+    knee flexion, then the ankle) as far as the ranges allow: a hip turned into range swings the
+    whole leg, and a foot on the floor that swings with it slides. CMU 131_01's side lunge held a
+    hip 55° beyond its range while the foot stood still, and clipping slid that foot by 30 cm.
+    The pelvis does not move.
+    """
+    motion = motion.in_humanoid_order()
+    t = motion.num_frames
+    ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]]))
+    angles = motion.dof_pos.reshape(t, -1, 3)
+    fitted = fit_hinges_into_range(angles, ranges)
+    changed = np.any(fitted != angles, axis=-1)  # (T, 23): joints that had to move
+    before = compute_kinematics(motion, model)
+    qpos = replace(motion, dof_pos=fitted.reshape(t, -1)).qpos()
+    leg = _LegSolver(model)
+    for side in "LR":
+        ankle = BODY_NAMES.index(f"{side}_Ankle")
+        leg_joints = [BODY_NAMES.index(f"{side}_{b}") - 1 for b in ("Hip", "Knee", "Ankle")]
+        for k in np.flatnonzero(changed[:, leg_joints].any(axis=1)):
+            orientation = Rotation.from_quat(before.body_quat[k, ankle], scalar_first=True).as_matrix()
+            leg.reach(qpos[k], side, before.body_pos[k, ankle], orientation, _RANGE_FIT_HINGES)
+    return replace(motion, dof_pos=qpos[:, 7:])
+
+
 def lower_feet(motion: Motion, model: mujoco.MjModel, on: np.ndarray, drop: np.ndarray, blend: float,
                floor_height: float = 0.0, sole: np.ndarray | None = None) -> Motion:
     """The motion with foot ``i`` (0 left, 1 right) lowered by ``drop[k, i]`` m (<= 0) in the frames
@@ -604,47 +662,51 @@ def lower_feet(motion: Motion, model: mujoco.MjModel, on: np.ndarray, drop: np.n
 
 
 class _LegSolver:
-    """Lowers one foot of a posture by damped least squares on its hip's flexion and abduction and
-    its knee's flexion (as many hinges as the foot has coordinates), then turns the ankle back to
-    the foot's former orientation."""
+    """Moves one foot of a posture: bounded least squares on some of its leg's hinges to put the
+    ankle at a target, then the ankle turned to a given orientation."""
 
     def __init__(self, model: mujoco.MjModel) -> None:
         self.model, self.data = model, mujoco.MjData(model)
         self.adr = humanoid_qpos_adr(model)
-        self.jac = np.zeros((3, model.nv))
         self.ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]])).reshape(-1, 2)
-        # per side: the solved hinges (columns of the motion's hinges), their dofs, the ankle's hinges
-        self.hinges = {s: np.array([DOF_NAMES.index(f"{s}_{name}") for name in _PLANT_HINGES]) for s in "LR"}
-        self.dofs = {s: np.array([model.jnt_dofadr[model.joint(DOF_NAMES[h]).id] for h in self.hinges[s]])
-                     for s in "LR"}
         self.ankle_hinges = {s: np.array([DOF_NAMES.index(f"{s}_Ankle_{axis}") for axis in "xyz"]) for s in "LR"}
 
     def lower(self, qpos: np.ndarray, side: str, drop: float) -> None:
-        """Change ``qpos`` (the motion's row: root then hinges) in place."""
+        """Lower the ``side`` foot of ``qpos`` (the motion's row: root then hinges) by ``drop`` m,
+        in place, bending the hip and knee without twist and keeping the foot's orientation."""
+        ankle = self.model.body(f"{side}_Ankle").id
+        self._pose(qpos)
+        self.reach(qpos, side, self.data.xpos[ankle] + [0.0, 0.0, drop], self.data.xmat[ankle].reshape(3, 3).copy(),
+                   _PLANT_HINGES)
+
+    def reach(self, qpos: np.ndarray, side: str, target: np.ndarray, orientation: np.ndarray,
+              hinges: tuple[str, ...]) -> None:
+        """Move the ``side`` ankle of ``qpos`` to ``target`` (world, m) with its leg's ``hinges``
+        (e.g. ``"Hip_x"``), then turn the foot to ``orientation`` (world 3x3), as far as the joint
+        ranges allow, in place. Among equally close postures the one nearest the given is taken."""
         m, d = self.model, self.data
-        hinges, dofs, ankle_hinges = self.hinges[side], self.dofs[side], self.ankle_hinges[side]
+        columns = 7 + np.array([DOF_NAMES.index(f"{side}_{name}") for name in hinges])
+        ankle_hinges = self.ankle_hinges[side]
         ankle, knee = m.body(f"{side}_Ankle").id, m.body(f"{side}_Knee").id
-        d.qpos[self.adr:self.adr + len(qpos)] = qpos
-        mujoco.mj_kinematics(m, d)
-        target = d.xpos[ankle] + [0.0, 0.0, drop]
-        orientation = d.xmat[ankle].reshape(3, 3).copy()
         # the joint ranges, widened to hold the posture's own angles (a retarget that was not clipped)
         lo, hi = np.minimum(self.ranges[:, 0], qpos[7:]), np.maximum(self.ranges[:, 1], qpos[7:])
-        for _ in range(_PLANT_ITERATIONS):
-            error = target - d.xpos[ankle]
-            if np.linalg.norm(error) < 1e-5:
-                break
-            mujoco.mj_comPos(m, d)
-            mujoco.mj_jacBody(m, d, self.jac, None, ankle)
-            j = self.jac[:, dofs]
-            step = j.T @ np.linalg.solve(j @ j.T + _PLANT_DAMPING**2 * np.eye(3), error)
-            step *= min(1.0, _PLANT_MAX_STEP / np.abs(step).max())
-            qpos[7 + hinges] = np.clip(qpos[7 + hinges] + step, lo[hinges], hi[hinges])
-            d.qpos[self.adr:self.adr + len(qpos)] = qpos
-            mujoco.mj_kinematics(m, d)
+        start = qpos[columns].copy()
+
+        def residual(x: np.ndarray) -> np.ndarray:
+            qpos[columns] = x
+            self._pose(qpos)
+            return np.concatenate([d.xpos[ankle] - target, _REACH_REGULARISATION * (x - start)])
+
+        fit = least_squares(residual, start, bounds=(lo[columns - 7], hi[columns - 7]), xtol=1e-10)
+        qpos[columns] = fit.x
+        self._pose(qpos)
         local = d.xmat[knee].reshape(3, 3).T @ orientation  # the ankle's rotation in the shin's frame
         angles = rotations_to_hinge_angles(local[None, None], self.ranges[ankle_hinges][None])[0, 0]
         qpos[7 + ankle_hinges] = np.clip(angles, lo[ankle_hinges], hi[ankle_hinges])
+
+    def _pose(self, qpos: np.ndarray) -> None:
+        self.data.qpos[self.adr:self.adr + len(qpos)] = qpos
+        mujoco.mj_kinematics(self.model, self.data)
 
 
 def low_pass_joints(motion: Motion, cutoff_hz: float, bodies: tuple[str, ...] | None = None) -> Motion:

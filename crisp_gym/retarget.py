@@ -3,15 +3,15 @@
 Every retargeter (BVH rotations in :mod:`crisp_gym.bvh`, video landmarks in
 :mod:`crisp_gym.reconstruct.landmarks`) first finds each of the 24 bodies' world orientation and the
 pelvis position per frame; what follows is shared: local hinge angles, the noisy hands
-low-passed, planted feet laid flat (:func:`~crisp_gym.motion.level_feet`), hinges clipped into
-the humanoid's ranges, and the planted feet put on the floor frame by frame
+low-passed, planted feet laid flat (:func:`~crisp_gym.motion.level_feet`), joints fitted into
+the humanoid's ranges with the feet kept in place (:func:`~crisp_gym.motion.fit_into_range`), and the planted feet put on the floor frame by frame
 (:func:`~crisp_gym.motion.ground_stance`) or by one offset (:func:`~crisp_gym.motion.ground`).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -21,8 +21,10 @@ from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, joint_range_
 from crisp_gym.motion import (
     Motion,
     StanceGrounding,
+    fit_into_range,
     ground,
     ground_stance,
+    hinge_angles_to_rotations,
     level_feet,
     low_pass_joints,
     rotations_to_hinge_angles,
@@ -40,8 +42,8 @@ class Retargeted:
 
     Attributes:
         motion: the humanoid motion, grounded.
-        clipped_fraction: share of hinge values moved into the humanoid's ranges.
-        max_clip_deg: the largest such move in degrees.
+        clipped_fraction: share of hinge values changed to fit the joints into the humanoid's ranges.
+        max_clip_deg: the largest turn of a joint that fitting into range caused, in degrees.
         ground_offset: (T,) metres added to each frame's root height to put the feet on the floor.
     """
 
@@ -63,7 +65,8 @@ def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps:
     ``grounding`` lays planted feet flat and grounds them per frame (``None``: one offset for
     the whole motion, feet as given); ``shift=False`` lays the feet flat but moves nothing up or
     down (for a caller that has put the feet on the floor itself); ``model`` is the humanoid
-    grounded on (default: 1.70 m).
+    grounded on (default: 1.70 m). ``clip_to_range`` fits the joints into the humanoid's ranges
+    (:func:`~crisp_gym.motion.fit_into_range`; ``False``: hinges as decomposed).
     """
     t = len(body_rotations)
     ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]]))  # (23, 3, 2)
@@ -83,12 +86,13 @@ def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps:
         motion = level_feet(motion, model, grounding)
     clipped_fraction, max_clip = 0.0, 0.0
     if clip_to_range:
-        flat = ranges.reshape(-1, 2)
-        clipped = np.clip(motion.dof_pos, flat[:, 0], flat[:, 1])
-        moved = np.abs(clipped - motion.dof_pos)
-        clipped_fraction = float(np.mean(moved > 1e-9))
-        max_clip = float(np.rad2deg(moved.max()))
-        motion = replace(motion, dof_pos=clipped)
+        angles = motion.dof_pos.reshape(t, -1, 3)
+        motion = fit_into_range(motion, model)
+        fitted = motion.dof_pos.reshape(t, -1, 3)
+        clipped_fraction = float(np.mean(np.abs(fitted - angles) > 1e-9))
+        turn = Rotation.from_matrix(hinge_angles_to_rotations(fitted).reshape(-1, 3, 3)).inv() * \
+            Rotation.from_matrix(hinge_angles_to_rotations(angles).reshape(-1, 3, 3))
+        max_clip = float(np.rad2deg(turn.magnitude().max()))
     if not shift:
         grounded = motion
     elif grounding is None:
@@ -96,6 +100,6 @@ def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps:
     else:
         grounded = ground_stance(motion, model, grounding)
     if clipped_fraction > 0:
-        log.info("retarget clipped %.2f%% of hinge values into range (at most %.1f deg)",
+        log.info("retarget fitted %.2f%% of hinge values into range (joints turned by at most %.1f deg)",
                  100 * clipped_fraction, max_clip)
     return Retargeted(grounded, clipped_fraction, max_clip, grounded.root_pos[:, 2] - motion.root_pos[:, 2])

@@ -397,22 +397,34 @@ def test_unit_detection_rejects_a_non_human_skeleton(tmp_path):
     np.testing.assert_allclose(motion.dof_pos, expected_dofs(), atol=1e-4)  # 6-decimal offsets
 
 
-def test_clipping_is_reported_and_keeps_angles_in_range(tmp_path, model):
+def test_fitting_into_range_is_reported_keeps_angles_in_range_and_the_foot_in_place(tmp_path, model):
     joints = cgspeed_joints(CMU_UNIT, BVH_TO_OURS.T)
     names = [j[0] for j in joints]
     rots, root = pose_rotations(names, BVH_TO_OURS.T)
     hyperextended = Rotation.from_euler("y", -40, degrees=True).as_matrix()  # our knee axis
     rots[1, names.index("LeftLeg")] = BVH_TO_OURS.T @ hyperextended @ BVH_TO_OURS
     clip = parse_bvh(write_bvh(tmp_path / "hyper.bvh", joints, rots, root / CMU_UNIT))
-    free = retarget_bvh(clip, clip_to_range=False, model=model)
-    clipped = retarget_bvh(clip, model=model)
+    free = retarget_bvh(clip, clip_to_range=False, grounding=None, model=model)
+    fitted = retarget_bvh(clip, grounding=None, model=model)
     ranges = np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
     outside = (free.motion.dof_pos < ranges[:, 0]) | (free.motion.dof_pos > ranges[:, 1])
     assert outside.any()
-    assert clipped.clipped_fraction == pytest.approx(outside.mean())
-    assert clipped.max_clip_deg == pytest.approx(30.0, abs=1e-3)  # knee hyperextended -40 vs -10
-    assert np.all(clipped.motion.dof_pos >= ranges[:, 0] - 1e-12)
-    assert np.all(clipped.motion.dof_pos <= ranges[:, 1] + 1e-12)
+    changed = np.abs(fitted.motion.dof_pos - free.motion.dof_pos) > 1e-9
+    assert fitted.clipped_fraction == pytest.approx(changed.mean())
+    assert fitted.max_clip_deg == pytest.approx(30.0, abs=0.5)  # knee hyperextended -40 vs -10
+    assert np.all(fitted.motion.dof_pos >= ranges[:, 0] - 1e-12)
+    assert np.all(fitted.motion.dof_pos <= ranges[:, 1] + 1e-12)
+    # Clipping the knee alone swings the shin. The fit turns the hip instead: the foot moves only by
+    # the length the straighter leg has gained (its direction from the hip is kept).
+    clipped = replace(free.motion, dof_pos=np.clip(free.motion.dof_pos, ranges[:, 0], ranges[:, 1]))
+    hip, ankle = BODY_NAMES.index("L_Hip"), BODY_NAMES.index("L_Ankle")
+    pos = {name: compute_kinematics(m, model).body_pos[1]  # from the pelvis: grounding shifts each its own way
+           for name, m in (("free", free.motion), ("fitted", fitted.motion), ("clipped", clipped))}
+    pos = {name: p - p[0] for name, p in pos.items()}
+    leg = {name: np.linalg.norm(p[ankle] - p[hip]) for name, p in pos.items()}
+    moved = {name: np.linalg.norm(pos[name][ankle] - pos["free"][ankle]) for name in ("fitted", "clipped")}
+    assert moved["fitted"] == pytest.approx(leg["fitted"] - leg["free"], abs=1e-3)
+    assert moved["clipped"] > 3 * moved["fitted"]
 
 
 # --- grounding by planted feet ------------------------------------------------------------

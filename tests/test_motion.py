@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid, joint_range_deg
 from crisp_gym.motion import (
     Motion,
     compute_kinematics,
+    fit_hinges_into_range,
     foot_sole_heights,
     ground,
     hinge_angles_to_rotations,
@@ -74,6 +75,26 @@ def test_hinge_angle_conversion_is_continuous_past_90_degrees():
     angles[:, 1] = np.c_[0.4 * np.sin(6 * t), 1.4 * t, -0.5 * t]
     recovered = rotations_to_hinge_angles(hinge_angles_to_rotations(angles))
     np.testing.assert_allclose(recovered, angles, atol=1e-9)
+
+
+def test_fitting_into_range_finds_the_in_range_triple_of_a_rotation_clipping_turns_away():
+    # Every rotation has two XYZ triples, (a, b, c) and (a + 180, 180 - b, c + 180). Near b = -90°
+    # (a hip flexed to the horizontal) a capture can come out as the second, far outside the range.
+    ranges = np.deg2rad(np.array([joint_range_deg("L_Hip")]))  # (1, 3, 2)
+    inside = np.deg2rad([[[-20.0, -88.0, 10.0]], [[-25.0, -60.0, 5.0]]])  # (2 frames, 1 joint, 3)
+    outside = inside.copy()
+    outside[0, 0] = np.deg2rad([160.0, -92.0, -170.0])
+    np.testing.assert_allclose(hinge_angles_to_rotations(outside), hinge_angles_to_rotations(inside), atol=1e-12)
+
+    def turn_deg(a, b):
+        r = Rotation.from_matrix(hinge_angles_to_rotations(a).reshape(-1, 3, 3))
+        return np.rad2deg((r.inv() * Rotation.from_matrix(hinge_angles_to_rotations(b).reshape(-1, 3, 3))).magnitude())
+
+    fitted = fit_hinges_into_range(outside, ranges)
+    assert np.all((fitted >= ranges[..., 0] - 1e-12) & (fitted <= ranges[..., 1] + 1e-12))
+    assert turn_deg(fitted, outside).max() < 0.5
+    np.testing.assert_array_equal(fitted[1], outside[1])  # a frame already in range is kept as it is
+    assert turn_deg(np.clip(outside, ranges[..., 0], ranges[..., 1]), outside)[0] > 90.0
 
 
 def test_resample_matches_analytic_motion():
