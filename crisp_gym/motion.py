@@ -608,10 +608,11 @@ def fit_into_range(motion: Motion, model: mujoco.MjModel) -> Motion:
 
     Each joint is first given the in-range orientation nearest its own
     (:func:`fit_hinges_into_range`). A leg changed that way then has its ankle put back where it
-    was and its foot turned back, by :func:`plant_feet`'s leg solve (hip flexion and abduction,
-    knee flexion, then the ankle) as far as the ranges allow: a hip turned into range swings the
-    whole leg, and a foot on the floor that swings with it slides. CMU 131_01's side lunge held a
-    hip 55° beyond its range while the foot stood still, and clipping slid that foot by 30 cm.
+    was and its foot turned back, by the leg solve of :func:`plant_feet` (here on the hip's three
+    hinges and the knee's flexion, then the ankle) as far as the ranges allow: a hip turned into
+    range swings the whole leg, and a foot on the floor that swings with it slides. In CMU
+    131_01's side lunge the right hip's orientation lies up to 55° from any its ranges reach
+    while the captured foot stands still; clipped, that foot slid 32 cm in half a second.
     The pelvis does not move.
     """
     motion = motion.in_humanoid_order()
