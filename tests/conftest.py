@@ -27,6 +27,14 @@ def _isolated_user_registry(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("CRISP_GYM_USER_REGISTRY", str(tmp_path_factory.mktemp("registry") / "registry.yaml"))
 
 
+def fold_leg(dof_pos: np.ndarray, side: str, lift: float | np.ndarray) -> None:
+    """Fold the ``side`` (``"L"``/``"R"``) leg of (T, 69) hinge angles, in place, by ``lift`` rad
+    at the hip and knee and back at the ankle: the foot stays level and rises (3.7 cm at 0.3 rad)."""
+    dof_pos[:, DOF_NAMES.index(f"{side}_Hip_y")] = -lift
+    dof_pos[:, DOF_NAMES.index(f"{side}_Knee_y")] = 2 * lift
+    dof_pos[:, DOF_NAMES.index(f"{side}_Ankle_y")] = -lift
+
+
 def sway_motion(frames: int = 60, fps: float = 30.0) -> Motion:
     """A slow, kinematically easy motion: walking-pace drift with gentle knee and arm motion."""
     t = np.arange(frames) / fps

@@ -21,6 +21,7 @@ from crisp_gym.balance import (
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, HumanoidConfig, build_humanoid
 from crisp_gym.motion import Motion, side_sole_heights
 from crisp_gym.synth.clips import KINDS, make_clip
+from tests.conftest import fold_leg
 
 
 def _standing(frames: int, root_x: np.ndarray | None = None, root_z: np.ndarray | None = None) -> Motion:
@@ -164,9 +165,7 @@ def _crouched(frames: int, root_y: np.ndarray | None = None, lift: float = 0.3, 
     motion = _unlabelled(_standing(frames))
     dof = motion.dof_pos.copy()
     for side, sign in (("L", 1.0), ("R", -1.0)):
-        dof[:, DOF_NAMES.index(f"{side}_Hip_y")] = -lift
-        dof[:, DOF_NAMES.index(f"{side}_Knee_y")] = 2 * lift
-        dof[:, DOF_NAMES.index(f"{side}_Ankle_y")] = -lift
+        fold_leg(dof, side, lift)
         dof[:, DOF_NAMES.index(f"{side}_Hip_x")] = sign * spread
         dof[:, DOF_NAMES.index(f"{side}_Ankle_x")] = -sign * spread
     root = motion.root_pos.copy()

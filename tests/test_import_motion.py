@@ -29,7 +29,7 @@ from crisp_gym.motion import (
 from crisp_gym.registry import check_clip_name, list_clips, load_clip, plain_clip_name, user_registry_path
 from crisp_gym.smpl import SMPL_TO_OURS, detect_up_axis
 
-from .conftest import SHARED_DATA
+from .conftest import SHARED_DATA, fold_leg
 
 ASAP = SHARED_DATA / "asap_video_smpl"
 ROUND_TRIP_TOL = 1e-3  # m, the issue's bound on joint positions after export -> import
@@ -343,8 +343,7 @@ def test_import_plants_a_hovering_foot_when_told_to(model, tmp_path):
     it stays where it was, and ``meta.json`` says which was done."""
     lift = 0.3
     dof = np.zeros((45, len(DOF_NAMES)))
-    dof[:, DOF_NAMES.index("L_Hip_y")], dof[:, DOF_NAMES.index("L_Knee_y")] = -lift, 2 * lift
-    dof[:, DOF_NAMES.index("L_Ankle_y")] = -lift
+    fold_leg(dof, "L", lift)
     standing = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 0.95], (45, 1)), root_quat=np.tile([1.0, 0, 0, 0], (45, 1)),
                       dof_pos=dof)
     path = write_motion_npz(standing, tmp_path / "stand.npz", "beyondmimic")
@@ -366,8 +365,7 @@ def test_import_stands_the_foot_that_carries_the_body_on_the_floor_when_told_to(
     frames = 45
     dof = np.zeros((frames, len(DOF_NAMES)))
     for side, lift in (("L", 0.3), ("R", 0.45)):
-        dof[:, DOF_NAMES.index(f"{side}_Hip_y")], dof[:, DOF_NAMES.index(f"{side}_Knee_y")] = -lift, 2 * lift
-        dof[:, DOF_NAMES.index(f"{side}_Ankle_y")] = -lift
+        fold_leg(dof, side, lift)
     t = np.arange(frames) / 30.0
     root = np.stack([np.zeros(frames), 0.5 * 1.1 * t**2, np.full(frames, 0.9)], axis=1)
     leaning = Motion(fps=30.0, root_pos=root, root_quat=np.tile([1.0, 0, 0, 0], (frames, 1)), dof_pos=dof)

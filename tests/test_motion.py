@@ -19,7 +19,7 @@ from crisp_gym.motion import (
     rotations_to_hinge_angles,
     side_sole_heights,
 )
-from tests.conftest import sway_motion
+from tests.conftest import fold_leg, sway_motion
 
 
 def _random_motion(frames=20, seed=0) -> Motion:
@@ -181,9 +181,7 @@ def _standing_on_the_right(lift: np.ndarray) -> Motion:
     """Standing on the right foot while the left leg folds by ``lift`` (T,) radians at the hip and
     knee and back at the ankle: the left foot stays level and rises (3.7 cm at 0.3 rad)."""
     dof = np.zeros((len(lift), len(DOF_NAMES)))
-    dof[:, DOF_NAMES.index("L_Hip_y")] = -lift
-    dof[:, DOF_NAMES.index("L_Knee_y")] = 2 * lift
-    dof[:, DOF_NAMES.index("L_Ankle_y")] = -lift
+    fold_leg(dof, "L", lift)
     motion = Motion(fps=30.0, root_pos=np.tile([0.0, 0.0, 1.0], (len(lift), 1)),
                     root_quat=np.tile([1.0, 0, 0, 0], (len(lift), 1)), dof_pos=dof)
     return ground(motion, build_humanoid(), percentile=0.0)
