@@ -4,8 +4,9 @@ Every retargeter (BVH rotations in :mod:`crisp_gym.bvh`, video landmarks in
 :mod:`crisp_gym.reconstruct.landmarks`) first finds each of the 24 bodies' world orientation and the
 pelvis position per frame; what follows is shared: local hinge angles, the noisy hands
 low-passed, planted feet laid flat (:func:`~crisp_gym.motion.level_feet`), joints fitted into
-the humanoid's ranges with the feet kept in place (:func:`~crisp_gym.motion.fit_into_range`), and the planted feet put on the floor frame by frame
-(:func:`~crisp_gym.motion.ground_stance`) or by one offset (:func:`~crisp_gym.motion.ground`).
+the humanoid's ranges with the feet kept in place (:func:`~crisp_gym.motion.fit_into_range`),
+and the planted feet put on the floor frame by frame (:func:`~crisp_gym.motion.ground_stance`)
+or by one offset (:func:`~crisp_gym.motion.ground`).
 """
 
 from __future__ import annotations
