@@ -611,8 +611,9 @@ def fit_into_range(motion: Motion, model: mujoco.MjModel) -> Motion:
     was and its foot turned back, by the leg solve of :func:`plant_feet` (here on the hip's three
     hinges and the knee's flexion, then the ankle) as far as the ranges allow: a hip turned into
     range swings the whole leg, and a foot on the floor that swings with it slides. In CMU
-    131_01's side lunge the right hip's orientation lies up to 55° from any its ranges reach
-    while the captured foot stands still; clipped, that foot slid 32 cm in half a second.
+    131_01's side lunge the right hip's hinges lie up to 77° outside their ranges while the
+    captured foot stands still; clipped, the hip turned by up to 19° and that foot slid 32 cm in
+    half a second.
     The pelvis does not move.
     """
     motion = motion.in_humanoid_order()
