@@ -151,6 +151,11 @@ def joint_range_deg(body: str) -> np.ndarray:
     return ranges
 
 
+def hinge_ranges() -> np.ndarray:
+    """(69, 2) hinge ranges in radians, in :data:`DOF_NAMES` order."""
+    return np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
+
+
 def default_rest_joints(height: float = 1.70) -> np.ndarray:
     """(24, 3) world positions of the joints in the T-pose for a person of ``height`` metres.
 

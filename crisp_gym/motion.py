@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from crisp_gym.atomic import atomic_path
 from crisp_gym.file_errors import reading
-from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT, joint_range_deg
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, FEET, ROOT_JOINT, hinge_ranges
 from crisp_gym.npz import read_npz
 
 FORMAT_VERSION = 1
@@ -341,9 +341,9 @@ def fit_hinges_into_range(angles: np.ndarray, ranges: np.ndarray, continuity: fl
     those of ``angles``: the joint's orientation is kept as well as its range allows.
 
     Clipping each hinge on its own does not do that near ``b = ±90°`` (a hip flexed to the
-    horizontal, a foot rolled onto its edge), where only ``a ± c`` sets the rotation: a triple
-    with ``a`` and ``c`` both 80° outside can be the same rotation as one well inside, and
-    clipping both turns the joint by 90°. Each out-of-range joint is fitted by bounded least
+    horizontal), where only ``a ± c`` sets the rotation: a triple with ``a`` and ``c`` both far
+    outside can be the same rotation as one well inside, and clipping both can turn the joint by
+    90° or more. Each out-of-range joint is fitted by bounded least
     squares on the rotation matrices' difference, from its clipped angles and from the previous
     frame's answer; ``continuity`` weighs the squared distance from the previous frame, so that
     among equally good fits the motion stays smooth.
@@ -613,15 +613,15 @@ def fit_into_range(motion: Motion, model: mujoco.MjModel) -> Motion:
     range swings the whole leg, and a foot on the floor that swings with it slides. In CMU
     131_01's side lunge the right hip's hinges lie up to 77° outside their ranges while the
     captured foot stands still; clipped, the hip turned by up to 19° and that foot slid 32 cm in
-    half a second.
-    The pelvis does not move.
+    half a second. The pelvis does not move.
     """
     motion = motion.in_humanoid_order()
     t = motion.num_frames
-    ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]]))
     angles = motion.dof_pos.reshape(t, -1, 3)
-    fitted = fit_hinges_into_range(angles, ranges)
+    fitted = fit_hinges_into_range(angles, hinge_ranges().reshape(-1, 3, 2))
     changed = np.any(fitted != angles, axis=-1)  # (T, 23): joints that had to move
+    if not changed.any():
+        return motion
     before = compute_kinematics(motion, model)
     qpos = replace(motion, dof_pos=fitted.reshape(t, -1)).qpos()
     leg = _LegSolver(model)
@@ -670,7 +670,7 @@ class _LegSolver:
     def __init__(self, model: mujoco.MjModel) -> None:
         self.model, self.data = model, mujoco.MjData(model)
         self.adr = humanoid_qpos_adr(model)
-        self.ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]])).reshape(-1, 2)
+        self.ranges = hinge_ranges()
         self.ankle_hinges = {s: np.array([DOF_NAMES.index(f"{s}_Ankle_{axis}") for axis in "xyz"]) for s in "LR"}
 
     def lower(self, qpos: np.ndarray, side: str, drop: float) -> None:

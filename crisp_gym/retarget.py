@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, joint_range_deg
+from crisp_gym.humanoid import BODY_NAMES, PARENTS, build_humanoid, hinge_ranges
 from crisp_gym.motion import (
     Motion,
     StanceGrounding,
@@ -70,7 +70,7 @@ def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps:
     (:func:`~crisp_gym.motion.fit_into_range`; ``False``: hinges as decomposed).
     """
     t = len(body_rotations)
-    ranges = np.deg2rad(np.stack([joint_range_deg(b) for b in BODY_NAMES[1:]]))  # (23, 3, 2)
+    ranges = hinge_ranges().reshape(-1, 3, 2)
     index = {body: i for i, body in enumerate(BODY_NAMES)}
     local = np.empty_like(body_rotations)
     for i, body in enumerate(BODY_NAMES):

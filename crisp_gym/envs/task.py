@@ -15,6 +15,7 @@ from crisp_gym.envs import tracking
 from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.library import ClipSource, MotionLibrary
 from crisp_gym.envs.start_sampler import StartSampler
+from crisp_gym.humanoid import hinge_ranges
 
 
 class TrackingTask:
@@ -31,7 +32,7 @@ class TrackingTask:
         self.model = self.library.model
         self.body_ids = self.library.body_ids
         self.reference = self.library.reference
-        self.ranges = tracking.hinge_ranges()
+        self.ranges = hinge_ranges()
         self.damping_lead = tracking.damping_lead(self.model)
         if config.clip_weights is not None and len(config.clip_weights) != self.library.num_clips:
             raise ValueError(f"clip_weights has {len(config.clip_weights)} entries for "

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from crisp_gym.envs import quat
 from crisp_gym.envs.config import TrackConfig
-from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, joint_range_deg, servo_damping
+from crisp_gym.humanoid import BODY_NAMES, HumanoidConfig, build_humanoid_spec, servo_damping
 from crisp_gym.mjcf_scene import attach_scene, surface_points
 from crisp_gym.motion import Motion, compute_kinematics
 from crisp_gym.render import style_scene
@@ -294,11 +294,6 @@ def farthest_body(state: SimState, ref: Reference, frame: np.ndarray) -> tuple[n
     dist += diff[..., 2]
     body = dist.argmax(-1)
     return np.sqrt(dist[np.arange(len(body)), body]), body
-
-
-def hinge_ranges() -> np.ndarray:
-    """(69, 2) hinge ranges in radians, in :data:`crisp_gym.humanoid.DOF_NAMES` order."""
-    return np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
 
 
 def damping_lead(model: mujoco.MjModel) -> np.ndarray:

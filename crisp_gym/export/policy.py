@@ -26,10 +26,10 @@ from torch import nn
 
 from crisp_gym.atomic import atomic_path, write_text
 from crisp_gym.envs.config import TrackConfig
-from crisp_gym.envs.tracking import PROPRIO_DIM, TARGET_DIM, hinge_ranges
+from crisp_gym.envs.tracking import PROPRIO_DIM, TARGET_DIM
 from crisp_gym.export import POLICY_FORMATS
 from crisp_gym.export.actuators import actuator_table
-from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid
+from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, HumanoidConfig, build_humanoid, hinge_ranges
 from crisp_gym.policy.files import load_actor
 
 ONNX_OPSET = 18
