@@ -29,6 +29,12 @@ the floor is also brought down onto it by bending its leg, :func:`crisp_gym.moti
 or by one offset with ``--grounding constant``. With ``--plant-support`` a foot that hovers where
 the motion's centre of pressure needs it on the floor is put there too
 (:func:`crisp_gym.balance.plant_supporting_feet`).
+
+``--frames START:STOP`` keeps frames ``START`` to ``STOP - 1`` of the clip as written at ``--fps``
+(either bound may be left out; a negative one counts from the end). The cut comes last, after
+grounding and planting over the whole motion, so a segment holds exactly those frames of the whole
+import: a motion library can practise one hard move beside the whole clip
+(``docs/training.md``).
 """
 
 from __future__ import annotations
@@ -88,6 +94,9 @@ class ImportMotionArgs:
     """Where the ground must carry the body, stand the foot (or feet) its centre of pressure calls
     for on the floor when it hovers less than 10 cm above it (a capture's late landing or sliding
     foot; crisp_gym.balance.plant_supporting_feet)."""
+    frames: str | None = None
+    """Keep only frames START:STOP of the written motion (Python slice bounds at --fps, end excluded,
+    e.g. 60:110; the module docstring says why it cuts last)."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
@@ -102,6 +111,8 @@ class ReadMotion:
         source_fps: the input's frame rate (the file's own or the override).
         up_axis: the input's up axis, or ``None`` for formats that are z-up by definition.
         ground_shift: (min, max) metres added to the root height by grounding.
+        kept: for a segment (:meth:`segment`), its ``(start, stop)`` frames and the whole import's
+            frame count; ``None`` for the whole motion.
     """
 
     motion: Motion
@@ -109,6 +120,21 @@ class ReadMotion:
     source_fps: float
     up_axis: str | None
     ground_shift: tuple[float, float]
+    kept: tuple[int, int, int] | None = None
+
+    def segment(self, frames: tuple[int | None, int | None]) -> ReadMotion:
+        """Frames ``start:stop`` of the motion (:func:`parse_frame_range`'s bounds), checked
+        against its length: a bound beyond it is an error, not clamped as a Python slice would."""
+        total = self.motion.num_frames
+        for bound in frames:
+            if bound is not None and not -total <= bound <= total:
+                raise ValueError(f"--frames: frame {bound} is outside the motion's {total} frames at "
+                                 f"{self.motion.fps:g} fps")
+        start, stop, _ = slice(*frames).indices(total)
+        if stop - start < 2:
+            raise ValueError(f"--frames keeps {max(stop - start, 0)} of the motion's {total} frames "
+                             f"({start}:{stop}); a clip needs at least 2")
+        return replace(self, motion=self.motion.slice(start, stop), kept=(start, stop, total))
 
     def describe(self) -> str:
         """One line for the user: what was read and how it was grounded (and a warning when the
@@ -116,12 +142,28 @@ class ReadMotion:
         axis = f", {self.up_axis} up" if self.up_axis else ""
         low, high = (100 * v for v in self.ground_shift)
         shift = f"{low:+.1f} cm" if np.isclose(low, high, atol=0.05) else f"{low:+.1f} to {high:+.1f} cm"
-        line = (f"{self.source_format}{axis}, {self.source_fps:g} fps -> {self.motion.num_frames} frames at "
+        frames = self.motion.num_frames if self.kept is None else self.kept[2]
+        line = (f"{self.source_format}{axis}, {self.source_fps:g} fps -> {frames} frames at "
                 f"{self.motion.fps:g} fps, grounded by {shift}")
+        if self.kept is not None:
+            line += f", kept frames {self.kept[0]}:{self.kept[1]}"
         if high - low > 100 * _FLAT_GROUND_SPREAD:
             line += (f"\n  warning: the grounding correction spans {high - low:.0f} cm, nearly its limit; the clip's "
                      f"floor is flat, so a motion on steps or slopes was flattened: --grounding constant keeps it")
         return line
+
+
+def parse_frame_range(text: str) -> tuple[int | None, int | None]:
+    """``--frames``' ``START:STOP`` as slice bounds (``None`` where left out); checked before
+    any work, the bounds against the motion by :meth:`ReadMotion.segment`."""
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        start, stop = (int(part) if part.strip() else None for part in parts)
+    except ValueError:
+        raise ValueError(f"--frames takes START:STOP in frames at --fps (e.g. 60:110 or 60:), got {text!r}") from None
+    return start, stop
 
 
 def _npz_keys(path: Path) -> set[str]:
@@ -224,11 +266,15 @@ def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
     its body cannot balance on its feet (``meta.json``'s ``followability``)."""
     read = read_motion(file, args.fps, args.source_fps, args.up_axis, args.grounding, model, args.plant_feet,
                        args.plant_support)
+    if args.frames is not None:
+        read = read.segment(parse_frame_range(args.frames))
     follow = followability(read.motion)
     meta = {"name": name, "source": "import-motion", "input": str(file.resolve()), "fps": read.motion.fps,
             "source_format": read.source_format, "source_fps": read.source_fps, "up_axis": read.up_axis,
             "grounding": args.grounding, "plant_feet": args.plant_feet,
             "plant_support": args.plant_support, "followability": follow.to_json()}
+    if read.kept is not None:
+        meta["frames"] = list(read.kept[:2])
     write_clip(output, [floor_box()], read.motion, meta, overwrite=args.overwrite)
     register_clip(name, output, tags=["imported", "flat"])
     return read, follow
@@ -237,6 +283,8 @@ def import_file(file: Path, name: str, output: Path, args: ImportMotionArgs,
 def import_motion(args: ImportMotionArgs) -> list[Path]:
     """Run ``crisp import-motion``; returns the clip directories written."""
     check_clip_name(args.name)
+    if args.frames is not None:
+        parse_frame_range(args.frames)
     clips_dir = user_clips_dir()
     model = build_humanoid()
     if not args.file.is_dir():

@@ -379,3 +379,33 @@ def test_import_stands_the_foot_that_carries_the_body_on_the_floor_when_told_to(
     assert np.all(before[:, 0] < 3e-3) and np.all(before[:, 1] > 0.03)
     assert np.all((after[:, 1] > -1e-3) & (after[:, 1] < 3e-3))
     np.testing.assert_allclose(after[:, 0], before[:, 0], atol=1e-9)
+
+
+def test_a_segment_holds_exactly_those_frames_of_the_whole_import(walk, tmp_path, capsys):
+    """``--frames`` cuts after grounding and planting over the whole motion, so a segment equals
+    the same frames of the whole import bit for bit (open and negative bounds as Python slices)."""
+    path = write_motion_npz(walk, tmp_path / "walk.npz", "beyondmimic")
+    assert cli.main(["import-motion", str(path), "--name", "whole", "-o", str(tmp_path / "whole"),
+                     "--plant-support"]) == 0
+    whole = load_clip("whole").motion
+    total = whole.num_frames
+    for name, spec, (start, stop) in (("middle", "60:110", (60, 110)), ("tail", "-40:", (total - 40, total)),
+                                      ("head", ":30", (0, 30))):
+        assert cli.main(["import-motion", str(path), "--name", name, "-o", str(tmp_path / name), "--plant-support",
+                         "--frames", spec]) == 0
+        segment = load_clip(name)
+        assert segment.meta["frames"] == [start, stop] and segment.motion.num_frames == stop - start
+        for field in ("root_pos", "root_quat", "dof_pos"):
+            np.testing.assert_array_equal(getattr(segment.motion, field), getattr(whole, field)[start:stop])
+    assert f"{total} frames at 30 fps" in capsys.readouterr().out.split("kept frames 60:110")[0]
+    assert "frames" not in load_clip("whole").meta
+
+
+@pytest.mark.parametrize("spec, message", [("60-110", "START:STOP"), ("a:b", "START:STOP"), ("1:2:3", "START:STOP"),
+                                           ("0:100000", "outside the motion's"), ("50:51", "keeps 1 of"),
+                                           ("110:60", "keeps 0 of")])
+def test_bad_frame_ranges_are_refused_naming_the_range(spec, message, walk, tmp_path):
+    path = write_motion_npz(walk, tmp_path / "walk.npz", "beyondmimic")
+    with pytest.raises(ValueError, match=message):
+        import_motion(ImportMotionArgs(file=path, name="cut", output=tmp_path / "cut", frames=spec))
+    assert not (tmp_path / "cut").exists()
