@@ -2,11 +2,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.optimize import approx_fprime
 from scipy.spatial.transform import Rotation
 
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid, joint_range_deg
 from crisp_gym.motion import (
     Motion,
+    _RotationDistance,
     compute_kinematics,
     fit_hinges_into_range,
     foot_sole_heights,
@@ -95,6 +97,20 @@ def test_fitting_into_range_finds_the_in_range_triple_of_a_rotation_clipping_tur
     assert turn_deg(fitted, outside).max() < 0.5
     np.testing.assert_array_equal(fitted[1], outside[1])  # a frame already in range is kept as it is
     assert turn_deg(np.clip(outside, ranges[..., 0], ranges[..., 1]), outside)[0] > 90.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_range_fit_cost_and_gradient_agree_with_rotations_and_finite_differences(seed):
+    """The fit's written-out cost is the squared distance of :func:`hinge_angles_to_rotations`'
+    matrices plus the continuity term, and its gradient that of finite differences."""
+    rng = np.random.default_rng(seed)
+    target = Rotation.random(random_state=seed).as_matrix()
+    previous, x = rng.uniform(-np.pi, np.pi, (2, 3))
+    cost = _RotationDistance(target, previous, continuity=0.3)
+    value, gradient = cost(x)
+    expected = np.sum((hinge_angles_to_rotations(x) - target) ** 2) + 0.3 * np.sum((x - previous) ** 2)
+    assert value == pytest.approx(expected, abs=1e-12)
+    np.testing.assert_allclose(gradient, approx_fprime(x, lambda y: cost(y)[0], 1e-7), atol=1e-5)
 
 
 def test_resample_matches_analytic_motion():
