@@ -11,7 +11,9 @@ what the import reports (:func:`crisp_gym.balance.followability`): the shares of
 of pressure lies over 10 cm outside the feet on the floor, and with no foot down under load. Every
 planted foot, not only the lowest: the shares more than 1 and 2 cm above the floor, with the legs
 bent to plant them (``plant_feet=True``, ``--plant-feet``) and as read (the default); the balance
-shares for both.
+shares for both. Joint ranges: the share of hinge values the import fitted into the humanoid's
+ranges (BVH, ``ReadMotion.range_fit``) and the share it left outside them, for the simulator's
+joint limits to clip (the SMPL family, read as decomposed).
 
     python benchmarks/motion_import.py [FOLDER]
 """
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from crisp_gym.balance import followability
-from crisp_gym.humanoid import build_humanoid
+from crisp_gym.humanoid import build_humanoid, hinge_ranges
 from crisp_gym.import_motion import MOTION_SUFFIXES, read_motion
 from crisp_gym.metrics import foot_heights, foot_skating, sole_points
 from crisp_gym.motion import Motion, planted_feet, side_sole_heights
@@ -65,9 +67,11 @@ def main(argv: list[str] | None = None) -> None:
     print("| file | frames | fps | up axis | import (s) | planted-foot height median, stance / constant (cm) "
           "| \\|height\\| p90, stance / constant (cm) | planted skating (cm/s) "
           "| planted feet > 1 cm / > 2 cm above the floor, planted / legs as read (%) "
-          "| balance: CoP > 10 cm outside / no foot down, as read / planted (%) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    medians, followable, floating = [], 0, []
+          "| balance: CoP > 10 cm outside / no foot down, as read / planted (%) "
+          "| hinge values fitted into range / left outside (%) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    medians, followable, floating, ranges = [], 0, [], []
+    low, high = hinge_ranges().T
     for file in files:
         start = time.perf_counter()
         read = read_motion(file, model=model)
@@ -81,13 +85,16 @@ def main(argv: list[str] | None = None) -> None:
         medians.append(np.median(np.abs(h_stance)))
         follow, follow_planted = followability(read.motion), followability(planted)
         followable += not follow.spans
+        outside = np.mean((read.motion.dof_pos < low - 1e-9) | (read.motion.dof_pos > high + 1e-9))
+        ranges.append((read.range_fit[0], outside))
         print(f"| {file.name} | {read.motion.num_frames} | {read.source_fps:g} | {read.up_axis} | {seconds:.2f} "
               f"| {100 * np.median(h_stance):.2f} / {100 * np.median(h_constant):.2f} "
               f"| {100 * np.percentile(np.abs(h_stance), 90):.2f} / {100 * np.percentile(np.abs(h_constant), 90):.2f} "
               f"| {100 * skating:.1f} | {100 * shares[0]:.1f} / {100 * shares[1]:.1f}, "
               f"{100 * shares[2]:.1f} / {100 * shares[3]:.1f} "
               f"| {100 * follow.outside:.0f} / {100 * follow.unsupported:.0f}, "
-              f"{100 * follow_planted.outside:.0f} / {100 * follow_planted.unsupported:.0f} |")
+              f"{100 * follow_planted.outside:.0f} / {100 * follow_planted.unsupported:.0f} "
+              f"| {100 * read.range_fit[0]:.1f} / {100 * outside:.1f} |")
     medians = np.array(medians)
     print(f"\n{len(files)} files; median |planted-foot height| per file: median {100 * np.median(medians):.2f} cm, "
           f"max {100 * medians.max():.2f} cm; files within 1 cm: {int(np.sum(medians <= 0.01))}/{len(files)}; "
@@ -97,6 +104,9 @@ def main(argv: list[str] | None = None) -> None:
           f"{np.median(floating[:, 1]):.1f} %, legs as read {np.median(floating[:, 2]):.1f} / "
           f"{np.median(floating[:, 3]):.1f} %; worst file {floating[:, 0].max():.1f} / {floating[:, 1].max():.1f} % "
           f"against {floating[:, 2].max():.1f} / {floating[:, 3].max():.1f} %")
+    ranges = 100 * np.array(ranges)
+    print(f"hinge values fitted into range: median {np.median(ranges[:, 0]):.1f} %, max {ranges[:, 0].max():.1f} %; "
+          f"left outside: median {np.median(ranges[:, 1]):.1f} %, max {ranges[:, 1].max():.1f} %")
 
 
 if __name__ == "__main__":

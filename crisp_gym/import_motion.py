@@ -26,7 +26,9 @@ SMPL-family files is detected unless given (:func:`crisp_gym.bvh.detect_up_axis`
 its planted feet (:func:`crisp_gym.motion.ground_stance`; captures also get their planted feet
 laid flat, :func:`crisp_gym.motion.level_feet`; with ``--plant-feet`` a planted foot left above
 the floor is also brought down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`),
-or by one offset with ``--grounding constant``. With ``--plant-support`` a foot that hovers where
+or by one offset with ``--grounding constant``. A BVH capture's joints are fitted into the
+humanoid's ranges, each foot kept where it was (:func:`crisp_gym.motion.fit_into_range`, reported);
+the other formats' joints are read as decomposed or written. With ``--plant-support`` a foot that hovers where
 the motion's centre of pressure needs it on the floor is put there too
 (:func:`crisp_gym.balance.plant_supporting_feet`).
 
@@ -111,6 +113,8 @@ class ReadMotion:
         source_fps: the input's frame rate (the file's own or the override).
         up_axis: the input's up axis, or ``None`` for formats that are z-up by definition.
         ground_shift: (min, max) metres added to the root height by grounding.
+        range_fit: (share of hinge values changed, largest joint turn in degrees) by fitting a BVH
+            capture's joints into the humanoid's ranges (``(0, 0)`` for the other formats).
         kept: for a segment (:meth:`segment`), its ``(start, stop)`` frames and the whole import's
             frame count; ``None`` for the whole motion.
     """
@@ -120,6 +124,7 @@ class ReadMotion:
     source_fps: float
     up_axis: str | None
     ground_shift: tuple[float, float]
+    range_fit: tuple[float, float] = (0.0, 0.0)
     kept: tuple[int, int, int] | None = None
 
     def segment(self, frames: tuple[int | None, int | None]) -> ReadMotion:
@@ -145,6 +150,9 @@ class ReadMotion:
         frames = self.motion.num_frames if self.kept is None else self.kept[2]
         line = (f"{self.source_format}{axis}, {self.source_fps:g} fps -> {frames} frames at "
                 f"{self.motion.fps:g} fps, grounded by {shift}")
+        if self.range_fit[0] > 0:
+            line += (f", {100 * self.range_fit[0]:.1f} % of hinge values fitted into the joint ranges (a joint "
+                     f"turned by up to {self.range_fit[1]:.0f}°)")
         if self.kept is not None:
             line += f", kept frames {self.kept[0]}:{self.kept[1]}"
         if high - low > 100 * _FLAT_GROUND_SPREAD:
@@ -171,9 +179,11 @@ def _npz_keys(path: Path) -> set[str]:
 
 
 def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujoco.MjModel,
-                 grounding: StanceGrounding | None) -> tuple[Motion, str, str | None, np.ndarray | None]:
+                 grounding: StanceGrounding | None
+                 ) -> tuple[Motion, str, str | None, np.ndarray | None, tuple[float, float]]:
     """The motion as the file has it, its format, its up axis and, for BVH (whose retarget
-    grounds as it lays the feet flat), the grounding offset already applied."""
+    grounds as it lays the feet flat and fits the joints into range), the grounding offset
+    already applied and what the range fit changed (:attr:`ReadMotion.range_fit`)."""
     suffix = path.suffix.lower()
     if suffix == ".bvh":
         from crisp_gym.bvh import parse_bvh, retarget_bvh
@@ -182,16 +192,18 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
         if source_fps is not None:
             clip = replace(clip, frame_time=1.0 / source_fps)
         result = retarget_bvh(clip, up_axis=up_axis, model=model, grounding=grounding)
-        return result.motion, "BVH", result.up_axis, result.ground_offset
+        return (result.motion, "BVH", result.up_axis, result.ground_offset,
+                (result.clipped_fraction, result.max_clip_deg))
     if suffix == ".csv":
         from crisp_gym.export.motion_formats import read_motion_csv
 
-        return read_motion_csv(path), "CSV", None, None
+        return read_motion_csv(path), "CSV", None, None, (0.0, 0.0)
     if suffix == ".motion":
         from crisp_gym.protomotions import read_protomotions
 
         motion = read_protomotions(path)
-        return (motion if grounding is None else level_feet(motion, model, grounding)), "ProtoMotions", None, None
+        motion = motion if grounding is None else level_feet(motion, model, grounding)
+        return motion, "ProtoMotions", None, None, (0.0, 0.0)
     if suffix != ".npz":
         raise ValueError(f"{path}: unsupported motion file type {suffix!r} (expected {', '.join(MOTION_SUFFIXES)})")
     keys = _npz_keys(path)
@@ -204,13 +216,13 @@ def _read_source(path: Path, source_fps: float | None, up_axis: str, model: mujo
         axis = detect_up_axis(params)[0] if up_axis == "auto" else up_axis
         fmt = "AMASS" if "poses" in keys else "PHC SMPL" if "pose_aa" in keys else "SMPL parameters"
         motion = load_smpl_params(params, fps=source_fps, up_axis=axis, to_floor=False)
-        return (motion if grounding is None else level_feet(motion, model, grounding)), fmt, axis, None
+        return (motion if grounding is None else level_feet(motion, model, grounding)), fmt, axis, None, (0.0, 0.0)
     if {"root_pos", "root_quat", "dof_pos"} <= keys:
-        return Motion.load(path), "motion.npz", None, None
+        return Motion.load(path), "motion.npz", None, None, (0.0, 0.0)
     from crisp_gym.export.motion_formats import read_motion_npz
 
     motion = read_motion_npz(path)
-    return motion, "BeyondMimic" if "joint_pos" in keys else "crisp npz", None, None
+    return motion, "BeyondMimic" if "joint_pos" in keys else "crisp npz", None, None, (0.0, 0.0)
 
 
 def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, up_axis: str = "auto",
@@ -230,7 +242,7 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
     model = model if model is not None else build_humanoid()
     stance = StanceGrounding(plant=plant_feet) if grounding == "stance" else None
     with reading(path, "motion file"):
-        motion, fmt, axis, offset = _read_source(path, source_fps, up_axis, model, stance)
+        motion, fmt, axis, offset, range_fit = _read_source(path, source_fps, up_axis, model, stance)
     if source_fps is not None:
         motion = replace(motion, fps=source_fps)
     rate = motion.fps
@@ -252,7 +264,7 @@ def read_motion(path: Path, fps: float = 30.0, source_fps: float | None = None, 
         motion = grounded
     if plant_support:
         motion = plant_supporting_feet(motion, model)
-    return ReadMotion(motion, fmt, rate, axis, (float(offset.min()), float(offset.max())))
+    return ReadMotion(motion, fmt, rate, axis, (float(offset.min()), float(offset.max())), range_fit)
 
 
 def clip_name_for(prefix: str, file: Path) -> str:

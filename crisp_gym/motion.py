@@ -655,6 +655,19 @@ def fit_into_range(motion: Motion, model: mujoco.MjModel) -> Motion:
     return replace(motion, dof_pos=qpos[:, 7:])
 
 
+def range_fit_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """What :func:`fit_into_range` did, from the (T, 69) hinge angles before and after: the share
+    of hinge values it changed and the largest turn of a joint, in degrees."""
+    t = len(before)
+    before, after = np.reshape(before, (t, -1, 3)), np.reshape(after, (t, -1, 3))
+    changed = np.abs(after - before) > 1e-9
+    if not changed.any():
+        return 0.0, 0.0
+    turn = Rotation.from_matrix(hinge_angles_to_rotations(after).reshape(-1, 3, 3)).inv() * \
+        Rotation.from_matrix(hinge_angles_to_rotations(before).reshape(-1, 3, 3))
+    return float(np.mean(changed)), float(np.rad2deg(turn.magnitude().max()))
+
+
 def lower_feet(motion: Motion, model: mujoco.MjModel, on: np.ndarray, drop: np.ndarray, blend: float,
                floor_height: float = 0.0, sole: np.ndarray | None = None) -> Motion:
     """The motion with foot ``i`` (0 left, 1 right) lowered by ``drop[k, i]`` m (<= 0) in the frames

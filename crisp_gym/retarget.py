@@ -25,9 +25,9 @@ from crisp_gym.motion import (
     fit_into_range,
     ground,
     ground_stance,
-    hinge_angles_to_rotations,
     level_feet,
     low_pass_joints,
+    range_fit_change,
     rotations_to_hinge_angles,
 )
 
@@ -87,13 +87,9 @@ def motion_from_rotations(body_rotations: np.ndarray, root_pos: np.ndarray, fps:
         motion = level_feet(motion, model, grounding)
     clipped_fraction, max_clip = 0.0, 0.0
     if clip_to_range:
-        angles = motion.dof_pos.reshape(t, -1, 3)
+        angles = motion.dof_pos
         motion = fit_into_range(motion, model)
-        fitted = motion.dof_pos.reshape(t, -1, 3)
-        clipped_fraction = float(np.mean(np.abs(fitted - angles) > 1e-9))
-        turn = Rotation.from_matrix(hinge_angles_to_rotations(fitted).reshape(-1, 3, 3)).inv() * \
-            Rotation.from_matrix(hinge_angles_to_rotations(angles).reshape(-1, 3, 3))
-        max_clip = float(np.rad2deg(turn.magnitude().max()))
+        clipped_fraction, max_clip = range_fit_change(angles, motion.dof_pos)
     if not shift:
         grounded = motion
     elif grounding is None:

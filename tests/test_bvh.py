@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from crisp_gym.bvh import JOINT_MAPS, bvh_forward_kinematics, load_bvh, parse_bvh, retarget_bvh
 from crisp_gym.clip import write_clip
 from crisp_gym.humanoid import BODY_NAMES, DOF_NAMES, build_humanoid, default_rest_joints, joint_range_deg
+from crisp_gym.import_motion import read_motion
 from crisp_gym.motion import (
     Motion,
     StanceGrounding,
@@ -403,9 +404,13 @@ def test_fitting_into_range_is_reported_keeps_angles_in_range_and_the_foot_in_pl
     rots, root = pose_rotations(names, BVH_TO_OURS.T)
     hyperextended = Rotation.from_euler("y", -40, degrees=True).as_matrix()  # our knee axis
     rots[1, names.index("LeftLeg")] = BVH_TO_OURS.T @ hyperextended @ BVH_TO_OURS
-    clip = parse_bvh(write_bvh(tmp_path / "hyper.bvh", joints, rots, root / CMU_UNIT))
+    path = write_bvh(tmp_path / "hyper.bvh", joints, rots, root / CMU_UNIT)
+    clip = parse_bvh(path)
     free = retarget_bvh(clip, clip_to_range=False, grounding=None, model=model)
     fitted = retarget_bvh(clip, grounding=None, model=model)
+    imported = read_motion(path, grounding="constant", model=model)  # what `crisp import-motion` says
+    assert imported.range_fit == (fitted.clipped_fraction, fitted.max_clip_deg)
+    assert "of hinge values fitted into the joint ranges (a joint turned by up to 30°)" in imported.describe()
     ranges = np.deg2rad(np.concatenate([joint_range_deg(b) for b in BODY_NAMES[1:]]))
     outside = (free.motion.dof_pos < ranges[:, 0]) | (free.motion.dof_pos > ranges[:, 1])
     assert outside.any()
