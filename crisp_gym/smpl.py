@@ -99,6 +99,14 @@ def _standard_keys(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 
+def _real_array(value: object, key: str) -> np.ndarray:
+    """``value`` as a float array; a complex or non-numeric one is a damaged file, not cast."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"SMPL {key} must be a real numeric array, got dtype {arr.dtype}")
+    return arr.astype(float)
+
+
 def detect_up_axis(params: Mapping[str, np.ndarray]) -> tuple[str, dict[str, float]]:
     """The world up axis of SMPL parameters (:data:`UP_AXES`), and per axis the mean
     uprightness it gives (the pelvis' up axis dotted with the world's, -1..1).
@@ -106,7 +114,7 @@ def detect_up_axis(params: Mapping[str, np.ndarray]) -> tuple[str, dict[str, flo
     The axis that keeps the pelvis most upright over the clip wins: people stand, walk, sit
     and squat with the pelvis upright; only a clip spent lying down leaves it ambiguous.
     """
-    orient = np.asarray(_standard_keys(params).get("global_orient", np.zeros((0, 3))), dtype=float)
+    orient = _real_array(_standard_keys(params).get("global_orient", np.zeros((0, 3))), "global_orient")
     if orient.ndim != 2 or orient.shape[1] != 3 or not len(orient) or not np.isfinite(orient).all():
         raise ValueError("the up axis is detected from global_orient (T, 3) finite values; "
                          f"got {orient.shape}")
@@ -122,11 +130,7 @@ def _checked(params: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, 
     if missing:
         raise ValueError(f"SMPL parameters lack {missing}; expected global_orient (T,3), "
                          f"body_pose (T,63 or T,69), transl (T,3); got keys {sorted(params)}")
-    try:
-        orient, pose, transl = (np.asarray(params[k], dtype=float)
-                                for k in ("global_orient", "body_pose", "transl"))
-    except (TypeError, ValueError):
-        raise ValueError("SMPL global_orient, body_pose and transl must be numeric arrays") from None
+    orient, pose, transl = (_real_array(params[k], k) for k in ("global_orient", "body_pose", "transl"))
     t = orient.shape[0] if orient.ndim == 2 else -1
     if pose.ndim == 3 and pose.shape[2] == 3:
         pose = pose.reshape(pose.shape[0], -1)

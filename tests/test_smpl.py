@@ -131,6 +131,7 @@ def test_y_up_and_z_up_inputs_give_the_same_motion(model):
     (lambda p: p["global_orient"].__setitem__((2, 1), np.nan), "global_orient has non-finite values .*frame 2"),
     (lambda p: p.update({k: v[:1] for k, v in p.items()}), "at least 2 frames"),
     (lambda p: p.update(body_pose=np.array([["a"] * 69] * 4)), "numeric"),
+    (lambda p: p.update(global_orient=p["global_orient"] + 1j), "global_orient must be a real numeric array"),
 ])  # fmt: skip
 def test_bad_parameters_are_rejected(change, message):
     p = params()
