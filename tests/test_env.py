@@ -10,9 +10,10 @@ from gymnasium.vector import AutoresetMode
 from threadpoolctl import ThreadpoolController, threadpool_limits
 
 import crisp_gym  # noqa: F401
+from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.track import CrispTrackEnv
 from crisp_gym.envs.track_vector import CrispTrackVectorEnv
-from crisp_gym.envs.tracking import REWARD_TERMS
+from crisp_gym.envs.tracking import reward_term_names
 from crisp_gym.registry import BUNDLED_REGISTRY, _read
 
 
@@ -266,16 +267,25 @@ def test_torchrl_gym_env_entry_point(sway_clip):
     env.close()
 
 
-def test_torchrl_wraps_the_batched_env(sway_clip):
+@pytest.mark.parametrize("w_root_pos", [0.0, 1.0])
+def test_torchrl_wraps_the_batched_env(sway_clip, w_root_pos):
     """``GymWrapper(gym.make_vec(...))``: TorchRL reads the infos into fixed specs, so a reset's
-    info has a step's keys; its spec check passes and a rollout runs through episode ends."""
+    info has a step's keys (the root position term's too, when weighted); its spec check passes, a
+    rollout runs through episode ends, and the reward is the sum of the terms in the info."""
     from torchrl.envs import GymWrapper
     from torchrl.envs.utils import check_env_specs
 
-    venv = gym.make_vec("CrispTrack-v0", num_envs=3, vectorization_mode="vector_entry_point", clip=str(sway_clip))
+    venv = gym.make_vec("CrispTrack-v0", num_envs=3, vectorization_mode="vector_entry_point", clip=str(sway_clip),
+                        w_root_pos=w_root_pos)
     _, reset_info = venv.reset(seed=0)
     _, _, _, _, step_info = venv.step(np.zeros(venv.action_space.shape))
     assert {k for k in step_info if not k.startswith(("final", "_final"))} == set(reset_info)
+    terms = reward_term_names(TrackConfig(w_root_pos=w_root_pos))
+    assert ("reward_root_pos" in reset_info) == (w_root_pos > 0) and {f"reward_{t}" for t in terms} <= set(reset_info)
+    single = CrispTrackEnv(clip=str(sway_clip), w_root_pos=w_root_pos)
+    _, single_reset = single.reset(seed=0)
+    single_step = single.step(np.zeros(single.action_space.shape))[-1]
+    assert set(single_step) == set(single_reset) >= {f"reward_{t}" for t in terms}
     env = GymWrapper(venv)
     check_env_specs(env)
     zero = lambda td: td.set("action", torch.zeros(env.action_spec.shape))  # noqa: E731 - the PD reference
@@ -283,7 +293,7 @@ def test_torchrl_wraps_the_batched_env(sway_clip):
     assert rollout.batch_size == (3, 70) and rollout["next", "done"].any()
     going = ~rollout["next", "done"].squeeze(-1).numpy()  # an episode's end step reads the next one's reset
     np.testing.assert_allclose(rollout["next", "reward"].squeeze(-1).numpy()[going],
-                               sum(rollout["next", f"reward_{t}"].numpy() for t in REWARD_TERMS)[going],
+                               sum(rollout["next", f"reward_{t}"].numpy() for t in terms)[going],
                                rtol=1e-5, atol=1e-5)
     env.close()
 

@@ -176,6 +176,28 @@ def test_reward_terms_and_errors_match_per_body_reference(state, ref, rng):
     assert tracking.farthest_body(state, ref, frame)[0][0] == 0.0
 
 
+def test_the_root_position_term_still_pulls_a_drifted_body_back(state, ref, rng):
+    """Off by default (the paper's six terms). Weighted, it is w·exp(-a·|pelvis error|); with every
+    body shifted by the same drift, the summed position term is spent by 0.2 m (under 0.1 % of its
+    weight) while this one keeps over half of it."""
+    frame = rng.integers(0, T, N)
+    assert "root_pos" not in tracking.reward_terms(state, ref, frame, TrackConfig())
+    cfg = TrackConfig(w_root_pos=2.0, a_root_pos=3.0)
+    got = tracking.reward_terms(state, ref, frame, cfg)
+    assert set(got) == set(tracking.reward_term_names(cfg)) == {*tracking.REWARD_TERMS, "root_pos"}
+    expected = [2.0 * np.exp(-3.0 * np.linalg.norm(ref.body_pos[f, 0] - state.body_pos[n, 0]))
+                for n, f in enumerate(frame)]
+    np.testing.assert_allclose(got["root_pos"], expected, **TOL)
+    drifts = np.array([0.0, 0.1, 0.2, 0.3])
+    for n, drift in enumerate(drifts):  # the reference pose, every body moved sideways by the drift
+        state.body_pos[n] = ref.body_pos[frame[n]] + [drift, 0.0, 0.0]
+    drifted = tracking.reward_terms(state, ref, frame, cfg)
+    pos, root = drifted["pos"][:4] / cfg.w_pos, drifted["root_pos"][:4] / cfg.w_root_pos
+    assert np.all(np.diff(root) < 0) and pos[2] < 1e-3 < 0.5 < root[2]
+    with pytest.raises(ValueError, match="w_root_pos"):
+        TrackConfig(w_root_pos=-1.0)
+
+
 @pytest.mark.parametrize("residual", [True, False])
 def test_pd_targets(ref, rng, residual):
     cfg = TrackConfig(residual_actions=residual, action_scale=0.4)

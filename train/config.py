@@ -42,6 +42,9 @@ class TrainConfig:
         velocity_feedforward: PD targets lead the reference by the servos' kd/kp times its hinge
             velocities, so fast moves are not lagged by the servos' damping (the env option of
             the same name).
+        root_pos_weight: weight of the env's pelvis-position reward term (``w_root_pos``; 0, the
+            default, is the paper's reward): the summed position term stops pulling a body that
+            has drifted 0.1-0.2 m back to its reference, this term does not.
         frames: total environment steps (the paper does not state its budget).
         num_envs: parallel simulations (paper: 2048).
         steps_per_env: steps collected per simulation and iteration (horizon of the GAE
@@ -125,6 +128,7 @@ class TrainConfig:
     output: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("runs/track")
     scene_aware: bool = False
     velocity_feedforward: bool = False
+    root_pos_weight: float = 0.0
     frames: int = 1_000_000_000
     num_envs: int = 2048
     steps_per_env: int = 32

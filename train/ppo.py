@@ -118,7 +118,8 @@ def make_env(cfg: TrainConfig, seed: int | None = None):
     vec_env = gym.make_vec("CrispTrack-v0", num_envs=cfg.num_envs, vectorization_mode="vector_entry_point",
                            clip=list(cfg.clip), scene_aware=cfg.scene_aware, num_threads=cfg.num_threads,
                            clip_weights=cfg.clip_weights, start_sampling=cfg.start_sampling,
-                           clip_sampling=cfg.clip_sampling, velocity_feedforward=cfg.velocity_feedforward)
+                           clip_sampling=cfg.clip_sampling, velocity_feedforward=cfg.velocity_feedforward,
+                           w_root_pos=cfg.root_pos_weight)
     return CrispTrackTorchEnv(vec_env, seed=seed, reward=TrainingReward(cfg.reward_scale, cfg.energy_cap))
 
 

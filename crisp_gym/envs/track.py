@@ -62,6 +62,8 @@ class CrispTrackEnv(gym.Env):
     ``reward_ang_vel``, ``reward_height``, ``reward_energy``: position, rotation, linear
     and angular velocity, root height (``w·exp(-α·error)``) and an energy penalty
     ``-w_energy·Σ|τ·q̇|`` (``τ``: each hinge servo's torque, its clamped PD force and its damping).
+    With ``w_root_pos > 0`` a seventh, ``reward_root_pos``: the pelvis's position alone,
+    ``w_root_pos·exp(-a_root_pos·error)``, which still pulls back a body that has drifted.
 
     ## Episode end
     ``terminated`` when any body is more than ``termination_distance`` (0.5 m) from its
@@ -128,7 +130,7 @@ class CrispTrackEnv(gym.Env):
             self.render()
         return ({k: v[0] for k, v in obs.items()},
                 {"clip": int(clips[0]), "frame": self._start_frame, "start_frame": self._start_frame,
-                 **{f"reward_{name}": 0.0 for name in tracking.REWARD_TERMS},
+                 **{f"reward_{name}": 0.0 for name in tracking.reward_term_names(self.config)},
                  "max_body_error": float(error[0]), "farthest_body": int(farthest[0]), "success": False,
                  "unstable": False})
 

@@ -32,7 +32,7 @@ from crisp_gym.envs.config import TrackConfig
 from crisp_gym.envs.library import ClipSource
 from crisp_gym.envs.task import TrackingTask
 from crisp_gym.envs.track import make_config
-from crisp_gym.envs.tracking import REWARD_TERMS, reward_info
+from crisp_gym.envs.tracking import reward_info, reward_term_names
 from crisp_gym.render import EnvDisplay
 
 _BOUND_FIELDS = ("qpos", "qvel", "ctrl", "xpos", "xquat", "cvel", "subtree_com", "actuator_force", "qfrc_damper")
@@ -250,7 +250,7 @@ class CrispTrackVectorEnv(VectorEnv):
         error, farthest = self.task.tracking_error(self._state(), self._clip, self._frame)
         # The same keys as a step's info (terms zero, no success yet): wrappers that read infos
         # into fixed specs, e.g. TorchRL's GymWrapper, need them on every call.
-        terms = reward_info({name: np.zeros(self.num_envs) for name in REWARD_TERMS})
+        terms = reward_info({name: np.zeros(self.num_envs) for name in reward_term_names(self.config)})
         if self.render_mode == "human":
             self.render()
         return obs, {"clip": self._clip.copy(), "frame": self._frame.copy(), "start_frame": self._start_frame.copy(),
@@ -326,7 +326,7 @@ class CrispTrackVectorEnv(VectorEnv):
                 obs[k][ids] = fresh[k]
             reward[ids] = 0.0
             terminated[ids] = truncated[ids] = info["success"][ids] = info["unstable"][ids] = False
-            for name in REWARD_TERMS:
+            for name in reward_term_names(self.config):
                 info[f"reward_{name}"][ids] = 0.0
             info["clip"][ids], info["frame"][ids] = self._clip[ids], self._frame[ids]
             info["start_frame"][ids] = self._start_frame[ids]

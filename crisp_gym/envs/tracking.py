@@ -46,17 +46,23 @@ NUM_BODIES = len(BODY_NAMES)
 PROPRIO_DIM = 1 + NUM_BODIES * (3 + 6 + 3 + 3)
 TARGET_DIM = NUM_BODIES * (6 + 6 + 3 + 3)
 REWARD_TERMS = ("pos", "rot", "vel", "ang_vel", "height", "energy")
+"""The paper's six reward terms."""
+
+
+def reward_term_names(cfg: TrackConfig) -> tuple[str, ...]:
+    """The terms the env's reward sums for ``cfg``: the paper's six, and ``root_pos`` when weighted."""
+    return (*REWARD_TERMS, "root_pos") if cfg.w_root_pos > 0 else REWARD_TERMS
 
 
 def reward_info(terms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The reward terms as flat ``info`` entries, ``reward_pos`` ... ``reward_energy`` (as gymnasium's
     MuJoCo envs report theirs; flat keys also read into TorchRL's fixed info specs)."""
-    return {f"reward_{name}": terms[name] for name in REWARD_TERMS}
+    return {f"reward_{name}": value for name, value in terms.items()}
 
 
 def terms_from_info(info: dict) -> dict[str, np.ndarray]:
     """The reward terms back from an env's ``info`` (see :func:`reward_info`)."""
-    return {name: info[f"reward_{name}"] for name in REWARD_TERMS}
+    return {key.removeprefix("reward_"): value for key, value in info.items() if key.startswith("reward_")}
 
 
 def build_track_spec(boxes: list[Box], timestep: float,
@@ -257,7 +263,8 @@ def nearest_points(root_pos: np.ndarray, root_quat: np.ndarray, tree: cKDTree, c
 
 
 def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackConfig) -> dict[str, np.ndarray]:
-    """The paper's six reward terms, each (N,) and already weighted; the reward is their sum."""
+    """The paper's six reward terms, each (N,) and already weighted, and ``root_pos`` when
+    ``cfg.w_root_pos > 0``; the reward is their sum."""
     n, nb = state.body_pos.shape[:2]
     err = np.empty((5, n))  # pos, vel, ang_vel, rot, height
     # per-body Euclidean errors of position, linear and angular velocity, summed over bodies
@@ -281,8 +288,12 @@ def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackC
     terms = np.exp(err, out=err)
     terms *= [[cfg.w_pos], [cfg.w_vel], [cfg.w_ang_vel], [cfg.w_rot], [cfg.w_height]]
     power = np.minimum(np.abs(state.servo_torque * state.qvel[:, 6:]).sum(-1), cfg.max_power)
-    return {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
-            "energy": -cfg.w_energy * power}
+    out = {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
+           "energy": -cfg.w_energy * power}
+    if cfg.w_root_pos > 0:  # the pelvis alone, so that a drifted body is still pulled back
+        root_error = np.linalg.norm(ref.body_pos[frame, 0] - state.body_pos[:, 0], axis=-1)
+        out["root_pos"] = cfg.w_root_pos * np.exp(-cfg.a_root_pos * root_error)
+    return out
 
 
 def farthest_body(state: SimState, ref: Reference, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
