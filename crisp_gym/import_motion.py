@@ -28,8 +28,8 @@ laid flat, :func:`crisp_gym.motion.level_feet`; with ``--plant-feet`` a planted 
 the floor is also brought down onto it by bending its leg, :func:`crisp_gym.motion.plant_feet`),
 or by one offset with ``--grounding constant``. A BVH capture's joints are fitted into the
 humanoid's ranges, each foot kept where it was (:func:`crisp_gym.motion.fit_into_range`, reported);
-the other formats' joints are read as decomposed or written. With ``--plant-support`` a foot that hovers where
-the motion's centre of pressure needs it on the floor is put there too
+the other formats' joints are read as decomposed or written. With ``--plant-support`` a foot that
+hovers where the motion's centre of pressure needs it on the floor is put there too
 (:func:`crisp_gym.balance.plant_supporting_feet`).
 
 ``--frames START:STOP`` keeps frames ``START`` to ``STOP - 1`` of the clip as written at ``--fps``
@@ -98,7 +98,7 @@ class ImportMotionArgs:
     foot; crisp_gym.balance.plant_supporting_feet)."""
     frames: str | None = None
     """Keep only frames START:STOP of the written motion (Python slice bounds at --fps, end excluded,
-    e.g. 60:110; the module docstring says why it cuts last)."""
+    e.g. 60:110), cut after grounding and planting: exactly those frames of the whole import."""
     overwrite: bool = False
     """Replace existing clip directories."""
 
