@@ -290,9 +290,8 @@ def reward_terms(state: SimState, ref: Reference, frame: np.ndarray, cfg: TrackC
     power = np.minimum(np.abs(state.servo_torque * state.qvel[:, 6:]).sum(-1), cfg.max_power)
     out = {"pos": terms[0], "rot": terms[3], "vel": terms[1], "ang_vel": terms[2], "height": terms[4],
            "energy": -cfg.w_energy * power}
-    if cfg.w_root_pos > 0:  # the pelvis alone, so that a drifted body is still pulled back
-        root_error = np.linalg.norm(ref.body_pos[frame, 0] - state.body_pos[:, 0], axis=-1)
-        out["root_pos"] = cfg.w_root_pos * np.exp(-cfg.a_root_pos * root_error)
+    if cfg.w_root_pos > 0:  # the pelvis alone (its distance from above), so a drifted body is still pulled back
+        out["root_pos"] = cfg.w_root_pos * np.exp(-cfg.a_root_pos * dist[0, :, 0])
     return out
 
 
